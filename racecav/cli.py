@@ -1,0 +1,62 @@
+"""The ``racecav`` command: one subcommand per service and tool.
+
+Subcommands are imported lazily so that ``racecav state`` does not pay for torch or pybullet.
+A subcommand module exposes ``add_arguments(parser)`` and ``run(args, cfg) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from racecav.common.config import ConfigError, load_config
+
+# name -> (module, one-line help). Keep sorted by role: infrastructure, services, tools.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "router": ("racecav.common.router", "run the car's Zenoh router in-process (mode router)"),
+    "state": ("racecav.common.state", "list live services and their status (any Zenoh client can do this)"),
+    "echo": ("racecav.common.echo", "print decoded messages of a key, like `ros2 topic echo`"),
+    "bench": ("racecav.common.bench", "benchmarks: results go to docs/benchmarks.md"),
+}
+
+# `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
+BENCHES: dict[str, tuple[str, str]] = {
+    "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency through the router, status queries, codec"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="racecav", description=__doc__.splitlines()[0])
+    parser.add_argument("--config", help="TOML config file (default: $RACECAV_CONFIG or built-in defaults)")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        # --config after the subcommand too (`racecav sim --config car.toml`), as users type it.
+        p.add_argument("--config", default=argparse.SUPPRESS, help="TOML config file")
+        p.set_defaults(_module=module)
+        _add_arguments(module, p)
+    return parser
+
+
+def _add_arguments(module: str, p: argparse.ArgumentParser) -> None:
+    # Argument definitions are cheap modules' functions; heavy imports stay inside run().
+    importlib.import_module(module).add_arguments(p)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    import logging
+
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as e:
+        print(f"racecav: {e}", file=sys.stderr)
+        return 2
+    return int(importlib.import_module(args._module).run(args, cfg) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
