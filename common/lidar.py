@@ -1,0 +1,93 @@
+"""The policy's lidar: 170 rays over the frontal 90 degrees, and the ONE preprocessing contract.
+
+Ray order follows REP-103 / sensor_msgs/LaserScan: counter-clockwise, index 0 is the rightmost
+ray at ``angle_min = -pi/4``, index 169 the leftmost at ``+pi/4``; angles are in the laser frame.
+
+Two representations, one conversion each way:
+- the Scan message (sim and real alike): metres, float32, no return = ``+inf`` (REP-117), never 0
+  or NaN: :func:`scan_ranges` turns raw ray results into it;
+- the policy observation: :func:`sanitize` maps a Scan's ranges to finite values in
+  ``[range_min, range_max]`` (no return / beyond range -> range_max, closer than range_min ->
+  range_min). Every consumer (training env, policy service, baseline) calls it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class LidarSpec(BaseModel):
+    """Geometry and range of the (virtual) scan the policy consumes."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    n_rays: int = Field(170, ge=2)
+    fov: float = Field(np.pi / 2, gt=0, le=2 * np.pi)
+    """Angular span from the first to the last ray (rad)."""
+    angle_min: float = -np.pi / 4
+    """Angle of ray 0 (rightmost), rad, CCW positive."""
+    range_min: float = Field(0.05, ge=0)
+    range_max: float = Field(12.0, gt=0)
+    scan_rate_hz: float = Field(10.0, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "LidarSpec":
+        if self.range_max <= self.range_min:
+            raise ValueError("range_max: must exceed range_min")
+        return self
+
+    @property
+    def angle_max(self) -> float:
+        return self.angle_min + self.fov
+
+    @property
+    def angle_increment(self) -> float:
+        return self.fov / (self.n_rays - 1)
+
+
+def ray_angles(spec: LidarSpec | None = None) -> np.ndarray:
+    """Ray angles in the laser frame, float32[n_rays], CCW, index 0 = rightmost."""
+    spec = spec or LidarSpec()
+    return (spec.angle_min + spec.angle_increment * np.arange(spec.n_rays)).astype(np.float32)
+
+
+def scan_ranges(distances, hit, spec: LidarSpec | None = None) -> np.ndarray:
+    """Raw ray results -> Scan ranges: float32, metres, +inf where nothing was hit in range.
+
+    :param distances: distance from the sensor to the hit (m), any value where ``hit`` is False.
+    :param hit: bool array, True where the ray hit something within range_max.
+    """
+    spec = spec or LidarSpec()
+    d = np.asarray(distances, dtype=np.float32)
+    ok = np.asarray(hit, dtype=bool) & np.isfinite(d) & (d <= spec.range_max)
+    return np.where(ok, d, np.float32(np.inf)).astype(np.float32)
+
+
+def sanitize(ranges, spec: LidarSpec | None = None) -> np.ndarray:
+    """Scan ranges -> policy observation (float32, same shape, also batched (..., n_rays)).
+
+    NaN, +inf and anything beyond range_max become range_max (nothing seen); finite values
+    below range_min become range_min (something touching the sensor is as close as it gets).
+    """
+    spec = spec or LidarSpec()
+    r = np.asarray(ranges, dtype=np.float32)
+    r = np.where(np.isfinite(r), r, np.float32(spec.range_max))
+    return np.clip(r, spec.range_min, spec.range_max).astype(np.float32)
+
+
+def make_scan(ranges, stamp_ns: int, seq: int, source: str, spec: LidarSpec | None = None,
+              frame_id: str = "laser"):
+    """Build the Scan message (the same for sim and real; only ``source`` differs).
+
+    :param ranges: float32[n_rays] in Scan form (+inf = no return), see :func:`scan_ranges`.
+    :param source: "sim" or "real".
+    """
+    from racecav.common.messages import Scan
+
+    spec = spec or LidarSpec()
+    return Scan(stamp_ns=stamp_ns, seq=seq, source=source, frame_id=frame_id,
+                angle_min=spec.angle_min, angle_max=spec.angle_max,
+                angle_increment=spec.angle_increment, scan_time=1.0 / spec.scan_rate_hz,
+                range_min=spec.range_min, range_max=spec.range_max,
+                ranges=np.asarray(ranges, dtype=np.float32))

@@ -1,0 +1,318 @@
+"""The worlds (racetrack, intersection) as data, and the one place their geometry is generated.
+
+A world file (common/data/worlds/NAME.toml) describes a track as pieces or roads; this module
+turns it into wall segments, the single source of geometry: the PyBullet backend builds a box
+per segment, the fast backend casts rays at them.
+
+- ``kind = "loop"``: a closed lane given as a centerline of ``[[pieces]]`` from a start pose,
+  each a straight (``straight = LENGTH``) or an arc (``arc_radius``, ``arc_deg``; positive =
+  left turn). Walls are the exact offsets of the centerline by +-lane_width/2 (arcs subdivided
+  at ``arc_max_step_deg``). The centerline direction is the traffic direction.
+- ``kind = "roads"``: straight ``[[roads]]`` (centre, yaw, length, width); walls are the road
+  edges minus the parts inside another road (curbs of a crossing). No centerline.
+Both accept extra ``[[walls]]`` segments (x0, y0, x1, y1). Units m, angles in files in degrees
+(``*_deg``), everywhere in code in radians.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from racecav.common.vehicle import format_errors
+
+WORLDS_DIR = Path(__file__).parent / "data" / "worlds"
+CENTERLINE_STEP = 0.05
+"""Spacing (m) of the sampled centerline used for progress and poses."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Piece(_Strict):
+    """One piece of a loop: a straight or an arc (exactly one of the two)."""
+
+    straight: float | None = Field(None, gt=0)
+    arc_radius: float | None = Field(None, gt=0)
+    arc_deg: float | None = None
+    """Turn angle in degrees, positive = left (CCW)."""
+
+    @model_validator(mode="after")
+    def _one(self) -> "Piece":
+        if (self.straight is None) == (self.arc_radius is None):
+            raise ValueError("give either straight or arc_radius + arc_deg")
+        if self.arc_radius is not None and not self.arc_deg:
+            raise ValueError("arc_deg: required (non-zero) with arc_radius")
+        return self
+
+
+class Road(_Strict):
+    cx: float
+    cy: float
+    yaw_deg: float
+    length: float = Field(gt=0)
+    width: float = Field(gt=0)
+
+
+class Pose2(_Strict):
+    x: float = 0.0
+    y: float = 0.0
+    yaw_deg: float = 0.0
+
+
+class WorldFile(_Strict):
+    """Schema of a world file."""
+
+    name: str
+    kind: Literal["loop", "roads"]
+    description: str = ""
+    wall_thickness: float = Field(0.1, gt=0)
+    wall_height: float = Field(0.3, gt=0)
+    lane_width: float = Field(gt=0)
+    """loop: width between the walls; roads: the road width (informational)."""
+    arc_max_step_deg: float = Field(10.0, gt=0, le=45)
+    start: Pose2 = Pose2()
+    pieces: list[Piece] = []
+    roads: list[Road] = []
+    walls: list[tuple[float, float, float, float]] = []
+    closure_tolerance: float = Field(0.01, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "WorldFile":
+        if self.kind == "loop" and not self.pieces:
+            raise ValueError("pieces: a loop needs at least one piece")
+        if self.kind == "roads" and not self.roads:
+            raise ValueError("roads: a roads world needs at least one road")
+        for i, p in enumerate(self.pieces):
+            if p.arc_radius is not None and p.arc_radius <= self.lane_width / 2:
+                raise ValueError(f"pieces.{i}.arc_radius: must exceed lane_width / 2")
+        return self
+
+
+@dataclass(frozen=True)
+class World:
+    """A world ready for a backend. Arrays are read-only."""
+
+    name: str
+    kind: str
+    walls: np.ndarray
+    """float32 (M, 4): segments x0, y0, x1, y1 in the world frame (wall centre lines)."""
+    wall_thickness: float
+    wall_height: float
+    lane_width: float
+    centerline: np.ndarray | None
+    """float32 (K, 2), closed loop (last point != first), traffic direction; None for roads."""
+    description: str = ""
+    _s: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def length(self) -> float:
+        """Centerline length (m) of a loop."""
+        self._need_centerline()
+        return float(self._s[-1])
+
+    def _need_centerline(self) -> None:
+        if self.centerline is None:
+            raise ValueError(f"world {self.name!r} has no centerline (kind {self.kind})")
+
+    def centerline_pose(self, s) -> np.ndarray:
+        """Pose(s) on the centerline at arc length ``s`` (wraps around): (..., 3) x, y, yaw."""
+        self._need_centerline()
+        pts = np.vstack([self.centerline, self.centerline[:1]]).astype(np.float64)
+        s = np.mod(np.asarray(s, dtype=np.float64), self.length)
+        i = np.clip(np.searchsorted(self._s, s, side="right") - 1, 0, len(pts) - 2)
+        t = (s - self._s[i]) / np.maximum(self._s[i + 1] - self._s[i], 1e-12)
+        p0, p1 = pts[i], pts[i + 1]
+        xy = p0 + (p1 - p0) * t[..., None]
+        yaw = np.arctan2(p1[..., 1] - p0[..., 1], p1[..., 0] - p0[..., 0])
+        return np.concatenate([xy, yaw[..., None]], axis=-1)
+
+    def progress(self, x, y) -> np.ndarray:
+        """Arc length (m, in [0, length)) of the centerline point closest to (x, y)."""
+        self._need_centerline()
+        pts = np.vstack([self.centerline, self.centerline[:1]]).astype(np.float64)
+        a, d = pts[:-1], pts[1:] - pts[:-1]
+        q = np.stack([np.asarray(x, np.float64), np.asarray(y, np.float64)], -1)[..., None, :]
+        t = np.clip(((q - a) * d).sum(-1) / (d * d).sum(-1), 0, 1)
+        dist = (((a + d * t[..., None]) - q) ** 2).sum(-1)
+        i = dist.argmin(-1)
+        seg = np.linalg.norm(d, axis=1)
+        return np.mod(self._s[i] + np.take_along_axis(t, i[..., None], -1)[..., 0] * seg[i], self.length)
+
+    def lateral_offset(self, x, y) -> np.ndarray:
+        """Signed distance (m, positive = left of the traffic direction) from the centerline."""
+        s = self.progress(x, y)
+        p = self.centerline_pose(s)
+        return -(np.asarray(x) - p[..., 0]) * np.sin(p[..., 2]) + (np.asarray(y) - p[..., 1]) * np.cos(p[..., 2])
+
+    def start_poses(self, n: int, rng: np.random.Generator, spacing: float | None = None,
+                    lateral: float | None = None, s0: float | None = None) -> np.ndarray:
+        """Spread ``n`` cars along the centerline, facing the traffic direction.
+
+        :param spacing: arc length between consecutive cars (default: evenly over the loop).
+        :param lateral: max |lateral offset| (default a quarter of the lane width), uniform.
+        :param s0: arc length of the first car (default uniform random).
+        :return: float64 (n, 3) x, y, yaw.
+        """
+        self._need_centerline()
+        spacing = self.length / max(n, 1) if spacing is None else spacing
+        if spacing * n > self.length:
+            raise ValueError(f"spacing: {n} cars x {spacing} m do not fit on {self.length:.1f} m")
+        lateral = self.lane_width / 4 if lateral is None else lateral
+        s0 = rng.uniform(0, self.length) if s0 is None else s0
+        s = s0 + spacing * np.arange(n)
+        pose = self.centerline_pose(s)
+        off = rng.uniform(-lateral, lateral, n)
+        pose[:, 0] -= off * np.sin(pose[:, 2])
+        pose[:, 1] += off * np.cos(pose[:, 2])
+        return pose
+
+
+def _loop_geometry(f: WorldFile) -> tuple[np.ndarray, np.ndarray]:
+    """Walls (M, 4) and centerline (K, 2) of a loop from its pieces."""
+    x, y, h = f.start.x, f.start.y, math.radians(f.start.yaw_deg)
+    half = f.lane_width / 2
+    center: list[tuple[float, float]] = [(x, y)]
+    left: list[list[tuple[float, float]]] = [[]]
+    right: list[list[tuple[float, float]]] = [[]]
+
+    def edge(px: float, py: float, hh: float) -> None:
+        left[-1].append((px - half * math.sin(hh), py + half * math.cos(hh)))
+        right[-1].append((px + half * math.sin(hh), py - half * math.cos(hh)))
+
+    edge(x, y, h)
+    for p in f.pieces:
+        if p.straight is not None:
+            n_c = max(1, math.ceil(p.straight / CENTERLINE_STEP))
+            for k in range(1, n_c + 1):
+                center.append((x + p.straight * k / n_c * math.cos(h), y + p.straight * k / n_c * math.sin(h)))
+            x, y = center[-1]
+            edge(x, y, h)
+        else:
+            r, turn = p.arc_radius, math.radians(p.arc_deg)
+            sgn = 1.0 if turn > 0 else -1.0
+            cx, cy = x - sgn * r * math.sin(h), y + sgn * r * math.cos(h)
+            n_c = max(1, math.ceil(r * abs(turn) / CENTERLINE_STEP))
+            n_w = max(1, math.ceil(abs(p.arc_deg) / f.arc_max_step_deg))
+
+            def at(frac: float) -> tuple[float, float, float]:
+                hh = h + turn * frac
+                return cx + sgn * r * math.sin(hh), cy - sgn * r * math.cos(hh), hh
+
+            for k in range(1, n_c + 1):
+                center.append(at(k / n_c)[:2])
+            for k in range(1, n_w + 1):
+                edge(*at(k / n_w))
+            x, y, h = at(1.0)
+    gap = math.hypot(x - f.start.x, y - f.start.y)
+    dh = (h - math.radians(f.start.yaw_deg) + math.pi) % (2 * math.pi) - math.pi
+    if gap > f.closure_tolerance or abs(dh) > 1e-6:
+        raise ValueError(f"pieces: the loop does not close (end is {gap:.3f} m and "
+                         f"{math.degrees(dh):.2f} deg from the start)")
+    segs = []
+    for side in (left[0], right[0]):
+        side[-1] = side[0]  # close exactly (the end matches the start within tolerance)
+        for a, b in zip(side[:-1], side[1:]):
+            segs.append((*a, *b))
+    cl = np.asarray(center[:-1], dtype=np.float64)
+    return np.asarray(segs, dtype=np.float64), cl
+
+
+def _road_walls(f: WorldFile) -> np.ndarray:
+    """Road edges minus the parts inside another road (the curbs of a crossing)."""
+    segs = []
+    for i, r in enumerate(f.roads):
+        c, s = math.cos(math.radians(r.yaw_deg)), math.sin(math.radians(r.yaw_deg))
+        for side in (-1, 1):
+            ox, oy = r.cx - side * r.width / 2 * s, r.cy + side * r.width / 2 * c
+            a = np.array([ox - r.length / 2 * c, oy - r.length / 2 * s])
+            d = np.array([r.length * c, r.length * s])
+            cuts = [(0.0, 1.0)]
+            for j, o in enumerate(f.roads):
+                if j == i:
+                    continue
+                lo, hi = _clip_to_rect(a, d, o)
+                if lo < hi:
+                    cuts = [piece for (u, v) in cuts for piece in ((u, min(v, lo)), (max(u, hi), v)) if piece[1] - piece[0] > 1e-9]
+            for u, v in cuts:
+                p0, p1 = a + d * u, a + d * v
+                segs.append((p0[0], p0[1], p1[0], p1[1]))
+    return np.asarray(segs, dtype=np.float64).reshape(-1, 4)
+
+
+def _clip_to_rect(a: np.ndarray, d: np.ndarray, r: Road) -> tuple[float, float]:
+    """Parameter interval [lo, hi] of a + t d (t in [0, 1]) inside road rectangle r (slab test)."""
+    c, s = math.cos(math.radians(r.yaw_deg)), math.sin(math.radians(r.yaw_deg))
+    lo, hi = 0.0, 1.0
+    rel = a - np.array([r.cx, r.cy])
+    for axis, half in (((c, s), r.length / 2), ((-s, c), r.width / 2)):
+        p = rel[0] * axis[0] + rel[1] * axis[1]
+        q = d[0] * axis[0] + d[1] * axis[1]
+        if abs(q) < 1e-12:
+            if abs(p) > half:
+                return 1.0, 0.0
+            continue
+        t0, t1 = sorted(((-half - p) / q, (half - p) / q))
+        lo, hi = max(lo, t0), min(hi, t1)
+    return lo, hi
+
+
+def build_world(f: WorldFile) -> World:
+    """Generate a World's geometry from its validated file (the only geometry generator)."""
+    if f.kind == "loop":
+        walls, cl = _loop_geometry(f)
+    else:
+        walls, cl = _road_walls(f), None
+    if f.walls:
+        walls = np.vstack([walls, np.asarray(f.walls, dtype=np.float64)])
+    walls = walls.astype(np.float32)
+    walls.setflags(write=False)
+    s = None
+    if cl is not None:
+        pts = np.vstack([cl, cl[:1]])
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        cl = cl.astype(np.float32)
+        cl.setflags(write=False)
+    return World(name=f.name, kind=f.kind, walls=walls, wall_thickness=f.wall_thickness,
+                 wall_height=f.wall_height, lane_width=f.lane_width, centerline=cl,
+                 description=f.description, _s=s)
+
+
+def load_world(name_or_path: str | Path = "racetrack") -> World:
+    """Load a world by name (common/data/worlds/NAME.toml) or from a TOML file path.
+
+    :raises ValueError: naming the file and the invalid field.
+    """
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = WORLDS_DIR / f"{name_or_path}.toml"
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"world file {path}: not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"world file {path}: invalid TOML: {e}") from None
+    try:
+        f = WorldFile.model_validate(data)
+    except ValidationError as e:
+        raise ValueError(f"world file {path}: {format_errors(e)}") from None
+    try:
+        return build_world(f)
+    except ValueError as e:
+        raise ValueError(f"world file {path}: {e}") from None
+
+
+def segment_distance(px, py, walls: np.ndarray) -> np.ndarray:
+    """Distance from points (N,) to the nearest wall segment centre line: float64 (N,)."""
+    p = np.stack([np.asarray(px, np.float64), np.asarray(py, np.float64)], -1)[:, None, :]
+    a, b = walls[None, :, :2].astype(np.float64), walls[None, :, 2:].astype(np.float64)
+    d = b - a
+    t = np.clip(((p - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0, 1)
+    return np.sqrt((((a + d * t[..., None]) - p) ** 2).sum(-1)).min(-1)
