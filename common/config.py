@@ -63,11 +63,123 @@ class RouterConfig(Section):
     """A zenoh JSON5 router config (access control, auth, TLS): see deploy/."""
 
 
+class SensorConfig(Section):
+    """The real lidar (``racecav sensor``): RPLIDAR S2 driver and scan preprocessing."""
+
+    port: str = "/dev/rplidar"
+    """Serial device; /dev/rplidar is the udev symlink in deploy/ (CP210x 10c4:ea60)."""
+    baudrate: int = Field(1_000_000, gt=0)
+    """The S2 talks at 1,000,000 baud (A-series: 115200 or 256000)."""
+    scan_mode: int | None = Field(None, ge=0)
+    """Scan mode id; None = the device's typical mode (DenseBoost on the S2)."""
+    motor_rpm: int = Field(600, ge=0, le=65535)
+    """Motor speed via A8 (600 rpm = 10 revolutions/s, the scan rate); 0 = leave it alone."""
+    car: str = "slash"
+    """Car file (common/data/cars) whose lidar_mount.yaw says where the device's 0 deg points."""
+    mount_yaw_rad: float | None = None
+    """Override of the car file's lidar_mount.yaw (rad, CCW from the car's heading)."""
+    reset_wait_s: float = Field(2.0, ge=0)
+    """Pause after RESET before talking to the device (Slamtec SDK: about 2 s)."""
+    spinup_s: float = Field(0.5, ge=0)
+    """Pause between motor start and SCAN (some S2 firmware refuses an early SCAN)."""
+    data_timeout_s: float = Field(1.0, gt=0)
+    """No scan data for this long => reset and restart the scan."""
+    reconnect_s: float = Field(0.5, gt=0)
+    """Retry period for reopening a vanished port (USB unplugged)."""
+    max_gap_deg: float = Field(6.0, ge=0)
+    """Widest hole between good samples that preprocessing fills by interpolation (deg)."""
+    spike_abs_m: float = Field(0.3, ge=0)
+    """An isolated spike differs from both neighbours by more than this (m) ..."""
+    spike_rel: float = Field(0.15, ge=0)
+    """... and by more than this fraction of their range."""
+    downsample: Literal["interp", "nearest", "min"] = "interp"
+    """How the 170 rays are taken from ~800 frontal samples: interp (like the simulator's single
+    ray per angle), nearest, or min over each ray's bin (conservative)."""
+
+
+class ActuatorConfig(Section):
+    """The VESC (``racecav actuator``): command mapping, calibration, safety.
+
+    Calibration defaults are XTENTH-CAR's (the paper's car): ERPM = speed_to_erpm_gain * v +
+    speed_to_erpm_offset; servo = steering_angle_to_servo_gain * delta + steering_angle_to_servo_offset,
+    clipped to [servo_min, servo_max].
+    """
+
+    port: str = "/dev/vesc"
+    """Serial device of the VESC (USB CDC 0483:5740; the baud rate is ignored by CDC)."""
+    baudrate: int = Field(115200, gt=0)
+    controller: str = Field("policy", min_length=1)
+    """The only source accepted on the cmd key (policy, baseline, ...); others are refused."""
+    teleop_source: str = Field("teleop", min_length=1)
+    """Source accepted on the teleop key; it overrides the controller while fresh."""
+    timeout_s: float = Field(0.1, gt=0)
+    """Watchdog: no fresh command for this long => motor neutral/brake and steering centred."""
+    teleop_hold_s: float = Field(0.5, ge=0)
+    """After a teleop command, controller commands are ignored for this long (priority mux)."""
+    rate_hz: float = Field(50.0, gt=0)
+    """Period at which the current command (or neutral) is re-sent; the VESC drops a motor
+    that hears nothing for its app timeout."""
+    values_hz: float = Field(10.0, ge=0)
+    """GET_VALUES polling rate for the status (0 = never)."""
+    car: str = "slash"
+    """Car file whose throttle model defines speed(T) for throttle_map = "sim"."""
+    speed_mode: Literal["rpm", "duty", "current"] = "rpm"
+    """How throttle reaches the motor: SET_RPM (speed control, the f1tenth way), SET_DUTY, SET_CURRENT."""
+    throttle_map: Literal["sim", "linear"] = "sim"
+    """Throttle T -> speed: "sim" = the simulator's steady-state speed for T (the car file's
+    friction model times agent_speed_scale: what the policy learnt T means); "linear" = T * speed_max_mps."""
+    speed_max_mps: float = Field(5.04, gt=0)
+    """Speed at T = 1 for throttle_map = "linear" (23250 ERPM / 4614 = XTENTH's limit)."""
+    speed_to_erpm_gain: float = 4614.0
+    speed_to_erpm_offset: float = 0.0
+    erpm_max: float = Field(23250.0, gt=0)
+    """ERPM clip (XTENTH speed_max)."""
+    duty_max: float = Field(0.2, gt=0, le=0.95)
+    """Duty at T = 1 for speed_mode = "duty"."""
+    current_max_a: float = Field(20.0, gt=0)
+    """Motor current at T = 1 for speed_mode = "current"."""
+    steering_angle_to_servo_gain: float = -1.2135
+    steering_angle_to_servo_offset: float = Field(0.5304, ge=0, le=1)
+    """Servo position of a centred wheel (steering angle 0)."""
+    servo_min: float = Field(0.15, ge=0, le=1)
+    servo_max: float = Field(0.85, ge=0, le=1)
+    neutral: Literal["brake", "rpm0", "coast"] = "brake"
+    """What "stop" sends: SET_CURRENT_BRAKE(brake_current_a), SET_RPM 0, or SET_CURRENT 0."""
+    brake_current_a: float = Field(20.0, ge=0)
+
+
+class EnvConfig(Section):
+    """The training env ``racecav/Overtake-v0`` and its batched VecEnv (training/env.py)."""
+
+    backend: Literal["fast", "bullet"] = "fast"
+    """fast: the numba batched world (training); bullet: the PyBullet reference world."""
+    world: str = "racetrack"
+    car: str = "slash"
+    heading: Literal["default", "reversed"] = "default"
+    """Agent with the traffic (default) or against it (reversed)."""
+    n_obstacles: int = Field(15, ge=0, le=15)
+    """Obstacle cars per world; 0 for the racing stage."""
+    driver: str = "centerline"
+    """Traffic driver: "centerline" (pure pursuit) or "policy:PATH" (a racing policy file)."""
+    control_period_s: float | None = Field(None, gt=0)
+    """None: the car's control_period_s (0.1 s, the RPLIDAR S2 scan period)."""
+    time_limit_s: float = Field(60.0, gt=0)
+    """Episode time limit: truncation, not termination (about two laps at the agent's top speed)."""
+    agent_speed_scale: float | None = Field(None, gt=0)
+    """None: the car's agent_speed_scale with obstacles, 1.0 without (the racing stage trains at
+    the speed of the cars its policy will drive)."""
+    n_envs: int = Field(64, ge=1)
+    """Worlds stepped together by the fast VecEnv."""
+
+
 class Config(Section):
     """The whole configuration. Sections are added by the services that own them."""
 
     bus: BusConfig = BusConfig()
     router: RouterConfig = RouterConfig()
+    env: EnvConfig = EnvConfig()
+    sensor: SensorConfig = SensorConfig()
+    actuator: ActuatorConfig = ActuatorConfig()
 
     def digest(self) -> str:
         """Short hash of the effective configuration, reported in every ServiceStatus."""
