@@ -66,6 +66,8 @@ class CarParams(_Frozen):
     height: float = Field(gt=0)
     ground_clearance: float = Field(ge=0)
     mass: float = Field(gt=0)
+    com_height: float = Field(0.06, gt=0)
+    """Centre of mass above the ground (m)."""
     wheel_radius: float = Field(gt=0)
     wheel_width: float = Field(gt=0)
     wheel_mass: float = Field(gt=0)
@@ -98,6 +100,16 @@ class CarParams(_Frozen):
         if self.wheelbase + 2 * self.wheel_radius > self.length + 1e-9:
             raise ValueError("length: must cover wheelbase + 2 * wheel_radius")
         return self
+
+    def ray_start_offsets(self, angles: np.ndarray) -> np.ndarray:
+        """Distance (m) from the lidar mount along each ray (car-frame angles) to where it leaves
+        the car's own body box: rays start there so a car never sees itself."""
+        m = self.lidar_mount
+        c, s = np.cos(angles + m.yaw), np.sin(angles + m.yaw)
+        with np.errstate(divide="ignore"):
+            tx = np.where(c > 0, (self.length / 2 - m.x) / c, np.where(c < 0, (-self.length / 2 - m.x) / c, np.inf))
+            ty = np.where(s > 0, (self.width / 2 - m.y) / s, np.where(s < 0, (-self.width / 2 - m.y) / s, np.inf))
+        return np.maximum(np.minimum(tx, ty), 0.0)
 
     @property
     def physics_dt(self) -> float:

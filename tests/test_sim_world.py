@@ -1,0 +1,131 @@
+"""PyBullet world: car model, lidar geometry, contacts, scenarios and determinism."""
+
+import math
+
+import numpy as np
+import pytest
+
+from racecav.common.lidar import ray_angles
+from racecav.common.scenario import Trial, TrialObstacle, load_scenario, scenario_names
+from racecav.services.sim.bullet_world import BulletWorld, car_urdf
+
+
+@pytest.fixture(scope="module")
+def crossing():
+    with BulletWorld("head-to-head") as w:
+        yield w
+
+
+def _trial(world, ego, obstacles=()):
+    return Trial(scenario=world.scenario, ego=ego, obstacles=list(obstacles))
+
+
+def _still(x, y, yaw):
+    return TrialObstacle(x=x, y=y, yaw=yaw, speed=0.0, delay_s=0.0, path=np.zeros((0, 2)))
+
+
+def test_urdf_has_solid_chassis_seen_by_rays(crossing):
+    w = crossing
+    assert "<box" in car_urdf(w.car)
+    # a parked car broadside 2 m ahead: the central rays hit its body box side
+    w.reset(seed=0, options={"trial": _trial(w, (0.0, 0.0, 0.0, 0.0), [_still(2.0, 0.0, math.pi / 2)])})
+    r = w.scan_ranges
+    face = 2.0 - w.car.width / 2
+    mount = w.car.lidar_mount.x
+    mid = len(r) // 2
+    expected = (face - mount) / np.cos(ray_angles(w.spec)[mid - 5: mid + 5])
+    assert np.allclose(r[mid - 5: mid + 5], expected, atol=0.01)
+
+
+@pytest.mark.parametrize("yaw_deg", [90.0, 110.0, 70.0])
+def test_wall_at_known_distance_and_rep103_order(crossing, yaw_deg):
+    """The ego at (5, 0), away from the origin (AutoVRL v0 forgot the car's position), facing
+    the curb y = 1.2 (face at 1.15): every ray's range matches the geometry within 1 cm, ray 0
+    being the rightmost (clockwise-most) ray."""
+    w = crossing
+    yaw = math.radians(yaw_deg)
+    w.reset(seed=0, options={"trial": _trial(w, (5.0, 0.0, yaw, 0.0))})
+    x, y, yaw_meas = w.agent_state()[:3]
+    m = w.car.lidar_mount
+    mx, my = x + m.x * math.cos(yaw_meas), y + m.x * math.sin(yaw_meas)
+    face = 1.2 - w.world.wall_thickness / 2
+    phi = yaw_meas + ray_angles(w.spec).astype(np.float64)
+    expected = (face - my) / np.sin(phi)
+    assert np.max(np.abs(w.scan_ranges - expected)) < 0.01
+    if yaw_deg > 90:  # turned left: the rightmost rays (index 0) are the most perpendicular to the wall
+        assert w.scan_ranges[0] < w.scan_ranges[-1]
+    elif yaw_deg < 90:
+        assert w.scan_ranges[0] > w.scan_ranges[-1]
+
+
+def test_driving_into_a_wall_ends_the_episode(crossing):
+    w = crossing
+    w.reset(seed=0, options={"trial": _trial(w, (5.0, 0.0, math.pi / 2, 0.0))})
+    for _ in range(40):
+        _, _, collided, info = w.step([1.0, 0.0])
+        if collided[0]:
+            break
+    assert collided[0] and info["contact_with"] == "wall"
+    assert w.agent_state()[1] > 0.6  # it got there by driving (front at the curb face)
+    assert not w.success()
+
+
+@pytest.mark.parametrize("name", [n for n in scenario_names() if not n.startswith("racetrack")])
+def test_intersection_scenarios_collide_without_evasion(name):
+    """Holding ~1 m/s straight (throttle 0.4 is the friction model's 1 m/s steady state) hits the
+    obstacle car: the scenarios are timed for a collision."""
+    with BulletWorld(name) as w:
+        w.reset(seed=1)
+        for _ in range(int(w.scenario.duration_s / w.car.control_period_s)):
+            _, _, collided, info = w.step([0.4, 0.0])
+            if collided[0]:
+                break
+        assert collided[0] and info["contact_with"] == "car1", info
+        assert 3.0 < info["t"] < 5.0
+
+
+def test_racetrack_traffic_laps_and_agent_is_faster():
+    with BulletWorld("racetrack") as w:
+        w.reset(seed=2)
+        assert len(w.cars) == 16
+        s0 = w.world.progress(w.obstacles()[:, 0], w.obstacles()[:, 1])
+        for _ in range(30):
+            w.step([0.0, 0.0])
+        obs = w.obstacles()
+        moved = (w.world.progress(obs[:, 0], obs[:, 1]) - s0) % w.world.length
+        assert np.all((moved > 2.0) & (moved < 8.0))  # every obstacle car drives along the loop
+        assert w.car.agent_speed_scale > 1.0
+        assert np.all(np.abs(w.world.lateral_offset(obs[:, 0], obs[:, 1])) < w.world.lane_width / 2)
+
+
+def test_reversed_heading_faces_the_traffic():
+    with BulletWorld("racetrack-reversed") as w:
+        w.reset(seed=0)
+        yaw = w.agent_state()[2]
+        cl_yaw = w.world.centerline_pose(w.world.progress(*w.agent_state()[:2]))[2]
+        assert math.cos(yaw - cl_yaw) < -0.9
+
+
+def test_unknown_traffic_driver_is_rejected(tmp_path):
+    from racecav.common.scenario import SCENARIOS_DIR
+    bad = tmp_path / "bad.toml"
+    bad.write_text((SCENARIOS_DIR / "racetrack.toml").read_text().replace('"pure_pursuit"', '"nobody"'))
+    with pytest.raises(ValueError, match="traffic.driver"):
+        BulletWorld(load_scenario(bad))
+
+
+def test_same_seed_and_actions_same_trajectory():
+    rng = np.random.default_rng(7)
+    actions = rng.uniform(-1, 1, (40, 2))
+    runs = []
+    for _ in range(2):
+        with BulletWorld("racetrack") as w:
+            w.reset(seed=11)
+            traj = []
+            for a in actions:
+                obs, _, collided, _ = w.step(a)
+                traj.append(np.concatenate([w.agent_state(), w.obstacles().ravel(), obs[0]]))
+                if collided[0]:
+                    break
+            runs.append(np.array(traj))
+    assert runs[0].shape == runs[1].shape and np.array_equal(runs[0], runs[1])
