@@ -1,0 +1,329 @@
+"""FastWorld: N racetrack worlds stepped together (numba), the training backend.
+
+Each world holds the agent (car 0) and up to 15 obstacle cars driven by a pluggable traffic
+driver; every car can have the 170-ray lidar. Geometry comes from :class:`racecav.common.world.World`
+(``walls``, ``centerline``, ``lane_width``, ``wall_thickness``), the car from
+:class:`racecav.common.vehicle.CarParams` (box, actuation, fitted single-track model ``bicycle``)
+and the lidar from its :class:`racecav.common.lidar.LidarSpec`: nothing is copied here.
+
+Actuation per control step, as in the PyBullet backend: the action is mapped by the shared
+``throttle_from_action`` / ``steer_from_action``; over ``physics_substeps`` substeps the wheel
+speed follows the shared ``wheel_speed_step`` (AutoVRL friction model) and the steering the shared
+``steer_rate_limit``; the kernel integrates the fitted kinematic single-track model and checks
+contacts after every substep; the lidar is taken once at the end of the control step.
+
+The API mirrors the contract (.notes/WORLD_CONTRACT.md): ``reset(seed, options) -> obs (N, 170)``,
+``step(actions (N, 2)) -> obs, (T, a_delta), collided, info``, ``agent_state``, ``set_state``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Protocol
+
+import numpy as np
+
+from racecav.common import lidar as lidar_mod
+from racecav.common import vehicle as vehicle_mod
+from racecav.services.sim import fast_kernels as K
+
+CENTERLINE_DS = 0.05  # m, spacing of the dense centerline table used by resets and traffic
+RESPAWN_TRIES = 24
+RESPAWN_MIN_DIST = 2.5  # m from every other car when an obstacle car is respawned
+
+
+class TrafficDriver(Protocol):
+    """Drives the obstacle cars: returns normalised actions (N, C-1, 2) for cars 1..C-1."""
+
+    needs_lidar: bool
+
+    def __call__(self, world: "FastWorld") -> np.ndarray: ...
+
+
+class CenterlineDriver:
+    """Vectorised pure pursuit of the centerline, each car on its own lateral offset and at its
+    own fraction of the obstacle top speed, slowing for curves and for a car ahead."""
+
+    needs_lidar = False
+
+    def __init__(self, a_lat: float = 3.0):
+        """:param a_lat: lateral acceleration the speed profile allows in curves (m/s^2)."""
+        self.a_lat = a_lat
+
+    def __call__(self, fw: "FastWorld") -> np.ndarray:
+        K.nearest_index(fw.x, fw.y, fw.cl, fw.cl_idx, 10, 40)
+        K.pure_pursuit(fw.x, fw.y, fw.yaw, fw.v, fw.active, fw.cl_idx, fw.lane_offset, fw.vfac,
+                       fw.cl, fw.cl_ds, fw.car.wheelbase, fw.car.steer_gain, fw.car.v_max,
+                       self.a_lat, fw.car.width, 1, fw._traffic_act)
+        return fw._traffic_act[:, 1:]
+
+
+class PolicyDriver:
+    """Obstacle cars driven by a policy on their own batched observations (e.g. the trained
+    racing policy as a numpy MLP): ``policy(obs (B, 170)) -> actions (B, 2)``."""
+
+    needs_lidar = True
+
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray]):
+        self.policy = policy
+
+    def __call__(self, fw: "FastWorld") -> np.ndarray:
+        obs = fw.observations()[:, 1:]
+        n, c, r = obs.shape
+        return np.asarray(self.policy(obs.reshape(n * c, r)), dtype=np.float64).reshape(n, c, 2)
+
+
+def make_driver(driver) -> TrafficDriver:
+    """``"centerline"``, a TrafficDriver, or a plain callable policy (wrapped in PolicyDriver)."""
+    if driver is None or driver == "centerline":
+        return CenterlineDriver()
+    if isinstance(driver, str):
+        raise ValueError(f"traffic driver: unknown name {driver!r} (known: 'centerline')")
+    if hasattr(driver, "needs_lidar"):
+        return driver
+    if callable(driver):
+        return PolicyDriver(driver)
+    raise ValueError(f"traffic driver: expected a name or a callable, got {driver!r}")
+
+
+def dense_centerline(world, ds: float = CENTERLINE_DS) -> np.ndarray:
+    """(K, 4) table x, y, yaw, curvature every ``ds`` metres along the world's closed centerline."""
+    pts = np.asarray(world.centerline, dtype=np.float64)
+    closed = np.vstack([pts, pts[:1]])
+    seg = np.hypot(*np.diff(closed, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    n = max(int(s[-1] / ds), 8)
+    q = np.linspace(0.0, s[-1], n, endpoint=False)
+    x = np.interp(q, s, closed[:, 0])
+    y = np.interp(q, s, closed[:, 1])
+    dx = np.roll(x, -1) - np.roll(x, 1)
+    dy = np.roll(y, -1) - np.roll(y, 1)
+    yaw = np.arctan2(dy, dx)
+    dyaw = np.angle(np.exp(1j * (np.roll(yaw, -1) - yaw)))
+    step = s[-1] / n
+    kap = dyaw / step
+    win = max(int(0.3 / step), 1)  # smooth over ~0.6 m (the polyline's corners are kinks)
+    kernel = np.ones(2 * win + 1) / (2 * win + 1)
+    kap = np.convolve(np.concatenate([kap[-win:], kap, kap[:win]]), kernel, mode="valid")
+    return np.stack([x, y, yaw, kap], axis=1)
+
+
+class FastWorld:
+    """N racetrack worlds with an agent and obstacle cars each, stepped in one numba call chain.
+
+    :param n_envs: number of worlds N.
+    :param world: World object or name (common/data/worlds/NAME.toml).
+    :param car: CarParams or name.
+    :param n_obstacles: obstacle cars per world (0..15; 0 = the racing stage).
+    :param heading: "default" (agent with traffic) or "reversed" (against it).
+    :param driver: traffic driver: "centerline", a TrafficDriver or a policy callable.
+    :param obstacle_lidar: compute the obstacle cars' scans every step (default: if the driver
+        needs them). The agent's scan is always computed.
+    :param agent_speed_scale: override of car.agent_speed_scale (1.0 for the racing stage).
+    :param control_period: override of car.control_period_s (s).
+    :param physics_substeps: override of car.physics_substeps.
+    :param seed: seed of the reset randomisation.
+    """
+
+    def __init__(self, n_envs: int = 1, world="racetrack", car="slash", n_obstacles: int = 15,
+                 heading: str = "default", driver="centerline", obstacle_lidar: bool | None = None,
+                 agent_speed_scale: float | None = None, control_period: float | None = None,
+                 physics_substeps: int | None = None, seed: int | None = None):
+        if isinstance(world, str):
+            from racecav.common.world import load_world
+
+            world = load_world(world)
+        if isinstance(car, str):
+            car = vehicle_mod.load_car(car)
+        if heading not in ("default", "reversed"):
+            raise ValueError(f"heading: expected 'default' or 'reversed', got {heading!r}")
+        if not 0 <= n_obstacles <= 15:
+            raise ValueError(f"n_obstacles: expected 0..15, got {n_obstacles}")
+        self.world, self.car, self.spec = world, car, car.lidar
+        self.n_envs = N = int(n_envs)
+        self.n_obstacles = n_obstacles
+        self.n_cars = C = 1 + n_obstacles
+        self.heading = heading
+        self.driver = make_driver(driver)
+        self.obstacle_lidar = self.driver.needs_lidar if obstacle_lidar is None else obstacle_lidar
+        self.agent_speed_scale = car.agent_speed_scale if agent_speed_scale is None else agent_speed_scale
+        self.control_period = car.control_period_s if control_period is None else float(control_period)
+        self.substeps = car.physics_substeps if physics_substeps is None else int(physics_substeps)
+        self.dt = self.control_period / self.substeps
+
+        self.walls = np.ascontiguousarray(world.walls, dtype=np.float64)
+        self.wall_box = np.stack([np.minimum(self.walls[:, 0], self.walls[:, 2]),
+                                  np.minimum(self.walls[:, 1], self.walls[:, 3]),
+                                  np.maximum(self.walls[:, 0], self.walls[:, 2]),
+                                  np.maximum(self.walls[:, 1], self.walls[:, 3])], axis=1)
+        self.wall_r = 0.5 * float(world.wall_thickness)
+        self.faces = K.wall_faces(self.walls, self.wall_r)
+        self.cl = dense_centerline(world)
+        self.cl_ds = float(np.hypot(*(self.cl[1, :2] - self.cl[0, :2])))
+        self.lat_max = max(0.0, 0.5 * float(world.lane_width) - 0.5 * car.width - 0.15)
+        self.hx, self.hy = 0.5 * car.length, 0.5 * car.width
+        m = car.lidar_mount
+        self.mount = np.array([m.x, m.y, m.yaw], dtype=np.float64)
+        ang = lidar_mod.ray_angles(self.spec).astype(np.float64)
+        self.ray_c, self.ray_s = np.cos(ang), np.sin(ang)
+        b = car.bicycle
+        self.lf, self.lr, self.steer_tau, self.speed_tau = b.lf, b.lr, b.steer_tau, b.speed_tau
+
+        f = np.zeros
+        self.x, self.y, self.yaw = f((N, C)), f((N, C)), f((N, C))
+        self.v, self.w, self.delta, self.delta_cmd = f((N, C)), f((N, C)), f((N, C)), f((N, C))
+        self.active = np.ones((N, C), dtype=bool)
+        self.cl_idx = np.zeros((N, C), dtype=np.int64)
+        self.lane_offset, self.vfac = f((N, C)), f((N, C))
+        self.speed_scale = np.ones((N, C))
+        self.speed_scale[:, 0] = self.agent_speed_scale
+        self.corners = f((N, C, 4, 2))
+        self.ranges = np.full((N, C, self.spec.n_rays), np.inf, dtype=np.float32)
+        self.observe = np.zeros((N, C), dtype=bool)
+        self.observe[:, 0] = True
+        self.observe[:, 1:] = self.obstacle_lidar
+        self.check = np.ones((N, C), dtype=bool)
+        self.wall_hit = np.zeros((N, C), dtype=bool)
+        self.car_hit = np.full((N, C), -1, dtype=np.int64)
+        self._traffic_act = f((N, C, 2))
+        self.actions = f((N, C, 2))
+        self.time = f(N)
+        self.respawns = 0
+        self.rng = np.random.default_rng(seed)
+
+    # ------------------------------------------------------------------ resets
+    def seed(self, seed: int | None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
+        """Reset every world. :return: agent observations (N, 170) float32."""
+        if seed is not None:
+            self.seed(seed)
+        self.reset_worlds(np.arange(self.n_envs))
+        return self.agent_obs()
+
+    def reset_worlds(self, envs) -> None:
+        """Re-place all cars of the worlds ``envs`` (indices or a bool mask) and rescan them."""
+        envs = np.flatnonzero(envs) if np.asarray(envs).dtype == bool else np.asarray(envs, dtype=np.int64)
+        if envs.size == 0:
+            return
+        C = self.x.shape[1]
+        u = self.rng.random((envs.size, 1 + 5 * C))
+        for i, n in enumerate(envs):
+            K.place_world(int(n), self.x, self.y, self.yaw, self.v, self.w, self.delta, self.cl_idx,
+                          self.lane_offset, self.vfac, self.active, self.cl, self.cl_ds, u[i],
+                          self.n_cars, self.heading == "reversed", self.lat_max, 0.1, 0.55, 1.0)
+        self.delta_cmd[envs] = 0.0
+        self.time[envs] = 0.0
+        self.wall_hit[envs] = False
+        self.car_hit[envs] = -1
+        self._scan(envs)
+
+    def set_state(self, env: int, car: int = 0, *, x=None, y=None, yaw=None, v=None, w=None,
+                  delta=None) -> None:
+        """Set one car's state (parity tests, scripted scenes); rescans that world."""
+        for name, val in (("x", x), ("y", y), ("yaw", yaw), ("v", v), ("w", w), ("delta", delta)):
+            if val is not None:
+                getattr(self, name)[env, car] = val
+        if delta is not None:
+            self.delta_cmd[env, car] = delta
+        if x is not None or y is not None:
+            self.cl_idx[env, car] = K.global_nearest(self.x[env, car], self.y[env, car], self.cl)
+        self._scan(np.array([env]))
+
+    def remove_car(self, env: int, car: int) -> None:
+        """Take a car out of a world (neither seen nor touched)."""
+        self.active[env, car] = False
+        self.x[env, car], self.y[env, car] = 1e6 + 10.0 * car, 1e6
+        self._scan(np.array([env]))
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, actions) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
+        """Advance every world by one control period.
+
+        :param actions: (N, 2) agent actions (a_T, a_delta), normalised.
+        :return: obs (N, 170) float32; reward inputs (T (N,), a_delta clipped to [-1, 1] (N,));
+            collided (N,) bool (agent touched a wall or a car during the step); info dict with
+            ``wall`` / ``car`` contact flags and the number of obstacle respawns this step.
+        """
+        a = np.asarray(actions, dtype=np.float64).reshape(self.n_envs, 2)
+        self.actions[:, 0] = a
+        if self.n_cars > 1:
+            self.actions[:, 1:] = self.driver(self)
+        car = self.car
+        T = vehicle_mod.throttle_from_action(self.actions[..., 0])
+        target = vehicle_mod.steer_from_action(self.actions[..., 1], car)
+        self.wall_hit[:] = False
+        self.car_hit[:] = -1
+        for _ in range(self.substeps):
+            self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
+            self.delta_cmd = vehicle_mod.steer_rate_limit(self.delta_cmd, target, self.dt, car)
+            K.integrate(self.x, self.y, self.yaw, self.v, self.delta, self.delta_cmd, self.w,
+                        self.speed_scale, self.active, car.wheel_radius, self.lf, self.lr,
+                        self.steer_tau, self.speed_tau, self.dt)
+            K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
+            K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
+                       self.corners, self.hx, self.hy, self.wall_r, self.check, self.wall_hit,
+                       self.car_hit)
+        K.wrap_angles(self.yaw)
+        self.time += self.control_period
+        collided = self.wall_hit[:, 0] | (self.car_hit[:, 0] >= 0)
+        respawned = self._respawn_obstacles(collided)
+        K.lidar(self.x, self.y, self.yaw, self.active, self.observe, self.faces, self.corners,
+                self.mount, self.ray_c, self.ray_s, self.spec.angle_min, self.spec.angle_increment,
+                self.spec.range_max, self.ranges)
+        a_d = np.clip(a[:, 1], -1.0, 1.0)
+        info = {"wall": self.wall_hit[:, 0].copy(), "car": self.car_hit[:, 0].copy(),
+                "respawned": respawned}
+        return self.agent_obs(), (T[:, 0], a_d), collided, info
+
+    def _respawn_obstacles(self, agent_collided: np.ndarray) -> int:
+        """Obstacle cars that touched a wall or another obstacle car reappear elsewhere on the
+        track (worlds whose agent collided are reset by the caller anyway)."""
+        if self.n_cars == 1:
+            return 0
+        bad = self.wall_hit[:, 1:] | (self.car_hit[:, 1:] > 0)
+        bad &= ~agent_collided[:, None]
+        if not bad.any():
+            return 0
+        ns, cs = np.nonzero(bad)
+        u = self.rng.random((ns.size, RESPAWN_TRIES, 2))
+        for i in range(ns.size):
+            n, c = int(ns[i]), int(cs[i]) + 1
+            if not K.respawn_car(n, c, self.x, self.y, self.yaw, self.v, self.w, self.delta,
+                                 self.cl_idx, self.lane_offset, self.active, self.cl, u[i],
+                                 RESPAWN_MIN_DIST, self.lat_max):
+                self.active[n, c] = False  # no free spot: the car leaves the world
+                self.x[n, c], self.y[n, c] = 1e6 + 10.0 * c, 1e6
+            self.delta_cmd[n, c] = self.delta[n, c]
+        K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
+        self.respawns += ns.size
+        return int(ns.size)
+
+    def _scan(self, envs: np.ndarray) -> None:
+        K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
+        observe = np.zeros_like(self.observe)
+        observe[envs] = self.observe[envs]
+        K.lidar(self.x, self.y, self.yaw, self.active, observe, self.faces, self.corners,
+                self.mount, self.ray_c, self.ray_s, self.spec.angle_min, self.spec.angle_increment,
+                self.spec.range_max, self.ranges)
+
+    # ------------------------------------------------------------------ views
+    def agent_obs(self) -> np.ndarray:
+        """The agents' observations (N, 170): Scan ranges through the shared ``sanitize``."""
+        return lidar_mod.sanitize(self.ranges[:, 0], self.spec)
+
+    def observations(self) -> np.ndarray:
+        """Every car's observation (N, C, 170) (obstacle scans are current only if
+        ``obstacle_lidar``)."""
+        return lidar_mod.sanitize(self.ranges, self.spec)
+
+    @property
+    def agent_state(self) -> np.ndarray:
+        """(N, 4) agent x, y, yaw, v."""
+        return np.stack([self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.v[:, 0]], axis=1)
+
+    def progress(self) -> np.ndarray:
+        """(N,) index of each agent on the dense centerline times its spacing (m, mod lap)."""
+        idx = np.array([K.global_nearest(self.x[n, 0], self.y[n, 0], self.cl) for n in range(self.n_envs)])
+        return idx * self.cl_ds

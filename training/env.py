@@ -1,0 +1,136 @@
+"""``racecav/Overtake-v0``: the paper's training env (observation, action and reward exactly).
+
+- Observation: the agent's 170 lidar ranges over the frontal 90 deg (float32, metres, index 0 =
+  rightmost), the shared ``sanitize`` contract: no return -> range_max.
+- Action: ``(a_T, a_delta)`` in [-1, 1]^2; ``T = clip(a_T, 0, 1)``; ``delta = clip(a_delta,
+  delta_min, delta_max)`` (``steer_from_action`` of common/vehicle.py; steer_gain 1.0 rad/unit).
+- Reward: ``5 T^2``, or ``-2.0`` when ``a_delta_prev * a_delta_curr == -1`` on the steering action
+  clipped to [-1, 1] (a full-lock to full-lock reversal within one step). No collision penalty:
+  a contact of the agent with a wall or a car terminates the episode; the time limit truncates.
+
+Backends: ``fast`` (numba batched world, services/sim/fast_world.py) and ``bullet`` (the PyBullet
+reference world, services/sim/bullet_world.py). For training use :class:`racecav.training.vec_env.
+FastVecEnv`, which steps a whole batch of fast worlds without a Python loop per env.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from racecav.common.config import EnvConfig
+
+REVERSAL_PENALTY = -2.0
+THROTTLE_REWARD_GAIN = 5.0
+
+
+def reward(throttle, a_delta_prev, a_delta):
+    """The paper's reward, vectorised.
+
+    :param throttle: physical throttle T = clip(a_T, 0, 1).
+    :param a_delta_prev: previous steering action clipped to [-1, 1] (0 at the episode start).
+    :param a_delta: current steering action clipped to [-1, 1].
+    :return: float32 array: -2.0 where a_delta_prev * a_delta == -1, else 5 T^2.
+    """
+    t = np.asarray(throttle, dtype=np.float64)
+    rev = np.asarray(a_delta_prev, dtype=np.float64) * np.asarray(a_delta, dtype=np.float64) == -1.0
+    return np.where(rev, REVERSAL_PENALTY, THROTTLE_REWARD_GAIN * t * t).astype(np.float32)
+
+
+def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
+    """The env section of the config with keyword overrides applied (validated)."""
+    cfg = cfg or EnvConfig()
+    return cfg.model_copy(update={k: v for k, v in overrides.items() if v is not None}) if overrides \
+        else cfg
+
+
+def make_traffic_driver(spec):
+    """A traffic driver from its config string ("centerline", "policy:PATH") or an object."""
+    if isinstance(spec, str) and spec.startswith("policy:"):
+        from racecav.training.policy_io import load_numpy_policy  # written with the training issue
+
+        return load_numpy_policy(spec.split(":", 1)[1])
+    return spec
+
+
+def make_world(settings: EnvConfig, n_envs: int = 1, seed: int | None = None, driver=None):
+    """Build the backend world of ``settings`` (fast: FastWorld with n_envs worlds)."""
+    driver = make_traffic_driver(settings.driver if driver is None else driver)
+    scale = settings.agent_speed_scale
+    if settings.backend == "fast":
+        from racecav.services.sim.fast_world import FastWorld
+
+        if scale is None and settings.n_obstacles == 0:
+            scale = 1.0
+        return FastWorld(n_envs=n_envs, world=settings.world, car=settings.car,
+                         n_obstacles=settings.n_obstacles, heading=settings.heading, driver=driver,
+                         agent_speed_scale=scale, control_period=settings.control_period_s,
+                         seed=seed)
+    if n_envs != 1:
+        raise ValueError("backend: the bullet backend runs one world per env")
+    from racecav.services.sim.bullet_world import BulletWorld
+
+    return BulletWorld.for_env(settings, driver=driver, seed=seed)
+
+
+class OvertakeEnv(gym.Env):
+    """One overtaking (or racing, with ``n_obstacles=0``) episode on the racetrack.
+
+    :param backend: "fast" or "bullet".
+    :param heading: "default" (with traffic) or "reversed" (against it).
+    :param n_obstacles: obstacle cars (0..15; 0 = the racing stage).
+    :param driver: traffic driver ("centerline", "policy:PATH", or a TrafficDriver/callable).
+    :param control_period: seconds per step (default: the car's, 0.1 s).
+    :param time_limit: episode time limit in seconds (truncation).
+    :param config: an EnvConfig to start from (keyword arguments override it).
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, backend: str | None = None, heading: str | None = None,
+                 n_obstacles: int | None = None, driver=None, control_period: float | None = None,
+                 time_limit: float | None = None, world: str | None = None, car: str | None = None,
+                 agent_speed_scale: float | None = None, config: EnvConfig | None = None):
+        drv_obj = driver if driver is not None and not isinstance(driver, str) else None
+        self.settings = env_settings(config, backend=backend, heading=heading,
+                                     n_obstacles=n_obstacles,
+                                     driver=driver if isinstance(driver, str) else None,
+                                     control_period_s=control_period, time_limit_s=time_limit,
+                                     world=world, car=car, agent_speed_scale=agent_speed_scale)
+        self.world = make_world(self.settings, n_envs=1, driver=drv_obj)
+        spec = self.world.spec
+        self.observation_space = gym.spaces.Box(spec.range_min, spec.range_max, (spec.n_rays,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.dt = self.world.control_period
+        self.max_steps = int(round(self.settings.time_limit_s / self.dt))
+        self._steps = 0
+        self._a_prev = 0.0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        self.world.seed(int(self.np_random.integers(2**63 - 1)))
+        obs = self.world.reset(options=options)
+        self._steps = 0
+        self._a_prev = 0.0
+        return obs[0].copy(), {}
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float64).reshape(1, 2)
+        obs, (throttle, a_delta), collided, info = self.world.step(a)
+        r = float(reward(throttle, self._a_prev, a_delta)[0])
+        self._a_prev = float(a_delta[0])
+        self._steps += 1
+        terminated = bool(collided[0])
+        truncated = (not terminated) and self._steps >= self.max_steps
+        x, y, yaw, v = self.world.agent_state[0]
+        return obs[0].copy(), r, terminated, truncated, {
+            "x": float(x), "y": float(y), "yaw": float(yaw), "v": float(v),
+            "contact_wall": bool(info["wall"][0]), "contact_car": int(info["car"][0])}
+
+    def close(self):
+        close = getattr(self.world, "close", None)
+        if close:
+            close()
+

@@ -1,0 +1,116 @@
+"""FastVecEnv: a stable-baselines3 VecEnv over one FastWorld batch (no Python loop per env).
+
+``FastVecEnv(n_envs=64, heading="reversed")`` is N copies of ``racecav/Overtake-v0`` (fast
+backend) stepped by one numba call chain. Semantics are SB3's: done envs are reset inside
+``step_wait``; their last observation is in ``infos[i]["terminal_observation"]`` and
+``infos[i]["TimeLimit.truncated"]`` is True when the time limit (not a contact) ended the
+episode. Wrap it in ``VecMonitor`` for episode returns and lengths.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
+
+from racecav.common.config import EnvConfig
+from racecav.training.env import env_settings, make_world, reward
+
+
+class FastVecEnv(VecEnv):
+    """N fast overtaking worlds as one SB3 VecEnv.
+
+    :param n_envs: worlds in the batch (default: config env.n_envs).
+    :param config: EnvConfig to start from; keyword overrides as in OvertakeEnv (heading,
+        n_obstacles, driver, control_period, time_limit, world, car, agent_speed_scale).
+    :param seed: seed of the reset randomisation (also settable with ``seed()``).
+    """
+
+    def __init__(self, n_envs: int | None = None, config: EnvConfig | None = None, *,
+                 heading: str | None = None, n_obstacles: int | None = None, driver=None,
+                 control_period: float | None = None, time_limit: float | None = None,
+                 world: str | None = None, car: str | None = None,
+                 agent_speed_scale: float | None = None, seed: int | None = None):
+        drv_obj = driver if driver is not None and not isinstance(driver, str) else None
+        self.settings = env_settings(config, backend="fast", heading=heading,
+                                     n_obstacles=n_obstacles,
+                                     driver=driver if isinstance(driver, str) else None,
+                                     control_period_s=control_period, time_limit_s=time_limit,
+                                     world=world, car=car, agent_speed_scale=agent_speed_scale,
+                                     n_envs=n_envs)
+        n = self.settings.n_envs
+        self.world = make_world(self.settings, n_envs=n, seed=seed, driver=drv_obj)
+        spec = self.world.spec
+        obs_space = gym.spaces.Box(spec.range_min, spec.range_max, (spec.n_rays,), np.float32)
+        act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.render_mode = None
+        super().__init__(n, obs_space, act_space)
+        self.max_steps = int(round(self.settings.time_limit_s / self.world.control_period))
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.a_prev = np.zeros(n, dtype=np.float64)
+        self._actions = np.zeros((n, 2))
+        if seed is not None:
+            self.seed(seed)
+
+    # --- VecEnv API -----------------------------------------------------------------------
+    def reset(self) -> np.ndarray:
+        seed = self._seeds[0]
+        obs = self.world.reset(seed=seed)
+        self._reset_seeds()
+        self._reset_options()
+        self.steps[:] = 0
+        self.a_prev[:] = 0.0
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, (throttle, a_delta), collided, _info = self.world.step(self._actions)
+        rewards = reward(throttle, self.a_prev, a_delta)
+        self.a_prev[:] = a_delta
+        self.steps += 1
+        truncated = (self.steps >= self.max_steps) & ~collided
+        dones = collided | truncated
+        infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        if dones.any():
+            idx = np.flatnonzero(dones)
+            for i in idx:
+                infos[i]["terminal_observation"] = obs[i].copy()
+                infos[i]["TimeLimit.truncated"] = bool(truncated[i])
+            self.world.reset_worlds(idx)
+            obs = self.world.agent_obs()
+            self.steps[idx] = 0
+            self.a_prev[idx] = 0.0
+        return obs, rewards, dones, infos
+
+    def close(self) -> None:
+        pass
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        """Seed the next reset (one RNG drives the whole batch's randomisation)."""
+        if seed is None:
+            seed = int(np.random.SeedSequence().generate_state(1)[0])
+        self._seeds = [seed + i for i in range(self.num_envs)]
+        return self._seeds
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        val = getattr(self, attr_name)
+        return [val for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None,
+                   **method_kwargs) -> list[Any]:
+        out = getattr(self, method_name)(*method_args, **method_kwargs)
+        return [out for _ in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return [None for _ in range(self.num_envs)]
