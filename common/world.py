@@ -111,6 +111,7 @@ class World:
     """float32 (K, 2), closed loop (last point != first), traffic direction; None for roads."""
     description: str = ""
     _s: np.ndarray | None = field(default=None, repr=False)
+    _cl64: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def length(self) -> float:
@@ -134,23 +135,41 @@ class World:
         yaw = np.arctan2(p1[..., 1] - p0[..., 1], p1[..., 0] - p0[..., 0])
         return np.concatenate([xy, yaw[..., None]], axis=-1)
 
+    def locate(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Arc length s (m, in [0, length)) of the closest centerline point, and the signed
+        lateral offset (m, positive = left of the traffic direction), for points (x, y)."""
+        self._need_centerline()
+        cl = self._cl64
+        q = np.stack([np.atleast_1d(np.asarray(x, np.float64)), np.atleast_1d(np.asarray(y, np.float64))], -1)
+        d2 = ((q[:, None, :] - cl[None, :, :]) ** 2).sum(-1)
+        k = d2.argmin(1)
+        n = len(cl)
+        best_s = np.empty(len(q))
+        best_lat = np.empty(len(q))
+        best_d = np.full(len(q), np.inf)
+        for i0 in ((k - 1) % n, k):  # the two segments around the nearest vertex
+            a, b = cl[i0], cl[(i0 + 1) % n]
+            d = b - a
+            seg2 = (d * d).sum(-1)
+            t = np.clip(((q - a) * d).sum(-1) / seg2, 0.0, 1.0)
+            foot = a + d * t[:, None]
+            dist = ((q - foot) ** 2).sum(-1)
+            better = dist < best_d
+            seg = np.sqrt(seg2)
+            cross = (d[:, 0] * (q[:, 1] - a[:, 1]) - d[:, 1] * (q[:, 0] - a[:, 0])) / seg
+            best_s = np.where(better, self._s[i0] + t * seg, best_s)
+            best_lat = np.where(better, cross, best_lat)
+            best_d = np.where(better, dist, best_d)
+        shape = np.shape(x)
+        return np.mod(best_s, self.length).reshape(shape), best_lat.reshape(shape)
+
     def progress(self, x, y) -> np.ndarray:
         """Arc length (m, in [0, length)) of the centerline point closest to (x, y)."""
-        self._need_centerline()
-        pts = np.vstack([self.centerline, self.centerline[:1]]).astype(np.float64)
-        a, d = pts[:-1], pts[1:] - pts[:-1]
-        q = np.stack([np.asarray(x, np.float64), np.asarray(y, np.float64)], -1)[..., None, :]
-        t = np.clip(((q - a) * d).sum(-1) / (d * d).sum(-1), 0, 1)
-        dist = (((a + d * t[..., None]) - q) ** 2).sum(-1)
-        i = dist.argmin(-1)
-        seg = np.linalg.norm(d, axis=1)
-        return np.mod(self._s[i] + np.take_along_axis(t, i[..., None], -1)[..., 0] * seg[i], self.length)
+        return self.locate(x, y)[0]
 
     def lateral_offset(self, x, y) -> np.ndarray:
         """Signed distance (m, positive = left of the traffic direction) from the centerline."""
-        s = self.progress(x, y)
-        p = self.centerline_pose(s)
-        return -(np.asarray(x) - p[..., 0]) * np.sin(p[..., 2]) + (np.asarray(y) - p[..., 1]) * np.cos(p[..., 2])
+        return self.locate(x, y)[1]
 
     def start_poses(self, n: int, rng: np.random.Generator, spacing: float | None = None,
                     lateral: float | None = None, s0: float | None = None) -> np.ndarray:
@@ -282,7 +301,8 @@ def build_world(f: WorldFile) -> World:
         cl.setflags(write=False)
     return World(name=f.name, kind=f.kind, walls=walls, wall_thickness=f.wall_thickness,
                  wall_height=f.wall_height, lane_width=f.lane_width, centerline=cl,
-                 description=f.description, _s=s)
+                 description=f.description, _s=s,
+                 _cl64=None if cl is None else cl.astype(np.float64))
 
 
 def load_world(name_or_path: str | Path = "racetrack") -> World:

@@ -71,7 +71,9 @@ class PurePursuitDriver(TrafficDriver):
     def act(self, obs: TrafficObs) -> np.ndarray:
         w, car = self.world, self.car
         x, y, yaw = obs.poses.T
-        s = w.progress(x, y)
+        everyone = np.vstack([obs.poses, obs.others]) if len(obs.others) else obs.poses
+        s_all, lat_all = w.locate(everyone[:, 0], everyone[:, 1])
+        s, lat = s_all[: len(x)], lat_all[: len(x)]
         ld = self.lookahead + self.k_v * np.maximum(obs.speeds, 0.0)
         target = w.centerline_pose(s + ld)
         tx = target[:, 0] - self.offsets * np.sin(target[:, 2])
@@ -81,10 +83,6 @@ class PurePursuitDriver(TrafficDriver):
         delta = np.arctan2(2.0 * car.wheelbase * np.sin(alpha), np.maximum(dist, 1e-3))
         a_steer = np.clip(delta / car.steer_gain, -1.0, 1.0)
         a_thr = np.full(len(x), self.throttle)
-        everyone = np.vstack([obs.poses, obs.others]) if len(obs.others) else obs.poses
-        s_all = w.progress(everyone[:, 0], everyone[:, 1])
-        lat_all = w.lateral_offset(everyone[:, 0], everyone[:, 1])
-        lat = lat_all[: len(x)]
         for i in range(len(x)):
             ds = np.mod(s_all - s[i], w.length)
             same_way = np.cos(everyone[:, 2] - yaw[i]) > 0
