@@ -18,6 +18,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "state": ("racecav.common.state", "list live services and their status (any Zenoh client can do this)"),
     "echo": ("racecav.common.echo", "print decoded messages of a key, like `ros2 topic echo`"),
     "bench": ("racecav.common.bench", "benchmarks: results go to docs/benchmarks.md"),
+    "sensor": ("racecav.services.sensor.service", "real lidar: RPLIDAR S2 driver publishing 170-ray Scans"),
+    "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),
+    "emulate": ("racecav.services.emulate", "device emulators on a pty: rplidar | vesc"),
 }
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.

@@ -131,8 +131,9 @@ class RplidarDriver:
 
     def _set_state(self, state: str, error: str = "") -> None:
         if error:
+            if error != self.stats.last_error:  # a vanished port retries every 0.5 s: say it once
+                log.warning("%s", error)
             self.stats.last_error = error
-            log.warning("%s", error)
         if state != self.state:
             log.info("rplidar: %s", state)
         self.state = state

@@ -1,0 +1,219 @@
+"""`racecav actuator`: DriveCommands to the VESC, with its own watchdog (the firmware's is a backstop).
+
+Inputs: racecav/<car>/cmd (the configured controller only), racecav/<car>/teleop (overrides),
+racecav/<car>/estop (any payload latches, "clear" clears). Every decision is in
+:mod:`racecav.services.actuator.control`; this module wires it to the bus and the serial port.
+
+Timing: a fresh command is forwarded as soon as it arrives; the current command (or neutral) is
+re-sent at rate_hz; the loop also wakes exactly when the command in force goes stale, so the
+motor is neutralised timeout_s after the last command, not up to a period later.
+Status: GET_VALUES is polled at values_hz; the values are published as JSON on
+racecav/<car>/vesc and included in the status queryable's info.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+import time
+
+import serial
+
+from racecav.common.bus import Service
+from racecav.common.codec import DecodeError, decode
+from racecav.common.config import Config
+from racecav.common.keys import CMD, ESTOP, TELEOP
+from racecav.common.messages import DriveCommand
+from racecav.services.actuator import vesc_protocol as vp
+from racecav.services.actuator.control import CommandMux, Decision, Mapping
+
+
+class VescLink:
+    """The serial port to the VESC: writes frames, reads replies in a thread, reopens on failure.
+
+    :param on_values: called (reader thread) with each parsed GET_VALUES dict.
+    """
+
+    def __init__(self, port: str, baudrate: int, on_values, reconnect_s: float = 0.5):
+        self.port, self.baudrate, self.on_values, self.reconnect_s = port, baudrate, on_values, reconnect_s
+        self._ser: serial.Serial | None = None
+        self._wlock = threading.Lock()
+        self._stop = threading.Event()
+        self.parser = vp.FrameParser()
+        self.frames_sent = 0
+        self.write_errors = 0
+        self.connected = False
+        self.last_error = ""
+        self._thread = threading.Thread(target=self._read_loop, name="vesc-reader", daemon=True)
+        self._thread.start()
+
+    def _open(self) -> None:
+        self._ser = serial.Serial(self.port, self.baudrate, timeout=0.05, write_timeout=0.05)
+        self.connected = True
+
+    def _drop(self, e: Exception) -> None:
+        self.last_error = f"{self.port}: {e}"
+        self.connected = False
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except (OSError, serial.SerialException):
+                pass
+
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            if self._ser is None:
+                try:
+                    with self._wlock:
+                        self._open()
+                except (OSError, serial.SerialException) as e:
+                    self.last_error = f"open {self.port}: {e}"
+                    self._stop.wait(self.reconnect_s)
+                    continue
+            try:
+                data = self._ser.read(self._ser.in_waiting or 1)
+            except (OSError, serial.SerialException, TypeError, AttributeError) as e:
+                with self._wlock:
+                    self._drop(e)
+                continue
+            for payload in self.parser.feed(data) if data else ():
+                if payload[:1] == bytes((vp.COMM_GET_VALUES,)):
+                    try:
+                        self.on_values(vp.parse_values(payload))
+                    except vp.FrameError:
+                        self.parser.errors += 1
+
+    def write(self, frames: list[bytes]) -> bool:
+        """Send frames in one write (one USB transfer); False if the port is down."""
+        with self._wlock:
+            if self._ser is None:
+                return False
+            try:
+                self._ser.write(b"".join(frames))
+                self.frames_sent += len(frames)
+                return True
+            except (OSError, serial.SerialException) as e:
+                self.write_errors += 1
+                self._drop(e)
+                return False
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+        with self._wlock:
+            if self._ser is not None:
+                self._drop(Exception("closed"))
+
+
+class ActuatorService(Service):
+    def __init__(self, cfg: Config, port: str | None = None, name: str = "actuator"):
+        super().__init__(cfg, name)
+        self.acfg = cfg.actuator
+        self.port = port or self.acfg.port
+        self._wake = threading.Condition()
+        self._new = False
+        self.values: dict = {}
+        self._values_t = 0.0
+        self.decision: Decision | None = None
+        self._last_reason = ""
+        self._next_send = 0.0
+        self._next_poll = 0.0
+        self.link: VescLink | None = None
+
+    def setup(self) -> None:
+        from racecav.common.vehicle import load_car
+
+        car = load_car(self.acfg.car) if self.acfg.throttle_map == "sim" else None
+        self.mapping = Mapping(self.acfg, car)
+        self.mux = CommandMux(self.acfg.controller, self.acfg.teleop_source, self.acfg.timeout_s,
+                              self.acfg.teleop_hold_s)
+        self.link = VescLink(self.port, self.acfg.baudrate, self._on_values)
+        self.values_pub = self.session.declare_publisher(self.topic("vesc"))
+        self._declared.append(self.values_pub)
+        self.subscribe(self.topic(CMD), None, lambda raw: self._on_cmd(raw, "cmd"))
+        self.subscribe(self.topic(TELEOP), None, lambda raw: self._on_cmd(raw, "teleop"))
+        self.subscribe(self.topic(ESTOP), None, self._on_estop)
+        self.queryable("values", lambda _p: dict(self.values))
+
+    # --- callbacks (Zenoh threads: short, never block) ------------------------------------------
+
+    def _on_cmd(self, raw: bytes, channel: str) -> None:
+        now = time.monotonic()
+        try:
+            msg = decode(raw, DriveCommand, self.cfg.bus.max_payload_bytes)
+        except DecodeError as e:
+            self.invalid += 1
+            self._record_error(f"malformed {channel}: {e}")
+            self.mux.reject(channel, now)
+        else:
+            if not self.mux.offer(msg, channel, now):
+                self._record_error(f"refused {channel}: source {msg.source!r}")
+        self._notify()
+
+    def _on_estop(self, raw: bytes) -> None:
+        self.mux.estop(raw)
+        self.log.warning("e-stop %s", "latched" if self.mux.estopped else "cleared")
+        self._notify()
+
+    def _notify(self) -> None:
+        with self._wake:
+            self._new = True
+            self._wake.notify()
+
+    def _on_values(self, values: dict) -> None:
+        self._values_t = time.monotonic()
+        values = dict(values, stamp_ns=time.monotonic_ns())
+        self.values = values
+        self.values_pub.put(json.dumps(values).encode())
+
+    # --- loop -------------------------------------------------------------------------------------
+
+    def step(self) -> None:
+        now = time.monotonic()
+        deadline = self.decision.deadline if self.decision else now
+        wake = min(self._next_send, deadline, self._next_poll if self.acfg.values_hz else now + 1.0)
+        with self._wake:
+            if not self._new:
+                self._wake.wait(max(0.0, min(wake - now, 0.5)))
+            new, self._new = self._new, False
+        now = time.monotonic()
+        d = self.mux.decide(now)
+        changed = d.reason != self._last_reason or (d.cmd is not None and self.decision is not None
+                                                   and d.cmd is not self.decision.cmd)
+        if changed or now >= self._next_send:
+            frames = self.mapping.drive_frames(d.cmd) if d.cmd is not None else self.mapping.neutral_frames()
+            self.link.write(frames)
+            self._next_send = now + 1.0 / self.acfg.rate_hz
+            if d.reason != self._last_reason:
+                self.log.info("driving: %s", d.reason)
+        self.decision, self._last_reason = d, d.reason
+        if self.acfg.values_hz and now >= self._next_poll:
+            self.link.write([vp.get_values()])
+            self._next_poll = now + 1.0 / self.acfg.values_hz
+
+    def info(self) -> dict:
+        d = self.decision
+        return dict(port=self.port, connected=bool(self.link and self.link.connected),
+                    driving=d.reason if d else "", estop=self.mux.estopped if self.link else False,
+                    accepted=self.mux.accepted if self.link else 0, refused=self.mux.refused if self.link else 0,
+                    malformed=self.mux.malformed if self.link else 0,
+                    frames_sent=self.link.frames_sent if self.link else 0,
+                    serial_error=self.link.last_error if self.link else "",
+                    values=self.values, values_age_s=round(time.monotonic() - self._values_t, 3) if self._values_t else None)
+
+    def teardown(self) -> None:
+        # Stopping the service stops the car: neutral and centred, then let go of the port.
+        if self.link is not None:
+            self.link.write(self.mapping.neutral_frames())
+            self.link.close()
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--port", help="serial device (default: actuator.port, /dev/vesc)")
+    p.add_argument("--name", default="actuator", help="service name (keys racecav/<car>/<name>/...)")
+
+
+def run(args: argparse.Namespace, cfg: Config) -> int:
+    return ActuatorService(cfg, port=args.port, name=args.name).run()

@@ -1,0 +1,30 @@
+"""`racecav emulate rplidar|vesc`: byte-exact device emulators on a pty, to run the stack without hardware.
+
+Each prints the path to open (a symlink to its pty) on its first line, e.g.::
+
+    racecav emulate rplidar &      # -> /tmp/racecav-rplidar
+    racecav sensor --port /tmp/racecav-rplidar
+    racecav emulate vesc --log /tmp/vesc.jsonl &
+    racecav actuator --port /tmp/racecav-vesc
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+DEVICES = {
+    "rplidar": ("racecav.services.sensor.emulator", "RPLIDAR S2 (info/health/conf, standard/express/dense scans, faults)"),
+    "vesc": ("racecav.services.actuator.emulator", "VESC (records every frame, answers GET_VALUES, motor model)"),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="device", required=True, metavar="DEVICE")
+    for name, (module, help_) in DEVICES.items():
+        sp = sub.add_parser(name, help=help_, description=help_)
+        importlib.import_module(module).add_arguments(sp)
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    return importlib.import_module(DEVICES[args.device][0]).run(args, cfg)
