@@ -265,6 +265,8 @@ class BulletWorld:
         self.throttle = np.zeros(n)          # held throttle T
         self.steer_target = np.zeros(n)
         self.prev_action = np.zeros(2)
+        self.action = np.zeros(2)
+        self.brake = False
         self._settle()
         if v0 > 0:
             self._set_speed(0, v0)
@@ -295,38 +297,79 @@ class BulletWorld:
         self.w[i] = wheel_w / c.speed_scale
 
     # ----------------------------------------------------------------------------- stepping
-    def step(self, actions) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+    def step(self, actions, schedule=()) -> tuple[np.ndarray, dict, np.ndarray, dict]:
         """Advance one control period with the agent's action (a_T, a_delta).
 
-        :param actions: (1, 2) or (2,) normalised actions in [-1, 1].
+        :param actions: (1, 2) or (2,) normalised actions in [-1, 1], applied from the start.
+        :param schedule: optional ``[(t_rel, action), ...]``: the agent's action switches to
+            ``action`` at ``t_rel`` seconds into the period (physics steps are split there). The
+            sim service uses it to apply a command after the controller's compute latency.
         :return: obs (1, n_rays), reward inputs {throttle, a_steer, a_steer_prev} (arrays (1,)),
-            collided (1,) bool, info {t, progress, pose, contact_with, ...}.
+            collided (1,) bool, info {t, progress, contact_with, state}.
         """
+        self.set_action(actions)
+        self.begin_period()
+        dt = self.car.physics_dt
+        pending = sorted((float(t), a) for t, a in schedule)
+        for k in range(self.car.physics_substeps):
+            t0, t1 = k * dt, (k + 1) * dt
+            while pending and pending[0][0] < t1 - 1e-12:
+                ts, a = pending.pop(0)
+                if ts > t0 + 1e-12:
+                    self.substep(ts - t0)
+                    t0 = ts
+                self.set_action(a)
+            self.substep(t1 - t0)
+        return self.end_period()
+
+    def set_action(self, actions, brake: bool = False) -> None:
+        """Set the agent's normalised action; ``brake`` forces the wheel speed target to 0 (the
+        sim service's watchdog stop, as the actuator does when commands stop)."""
         a = np.clip(np.asarray(actions, np.float64).reshape(-1)[:2], -1.0, 1.0)
-        car = self.car
-        self.throttle[0] = throttle_from_action(a[0])
-        self.steer_target[0] = steer_from_action(a[1], car)
+        self.action = a
+        self.brake = brake
+        self.throttle[0] = 0.0 if brake else throttle_from_action(a[0])
+        self.steer_target[0] = steer_from_action(a[1], self.car)
+
+    def begin_period(self) -> None:
+        """Start of a control period: the traffic driver chooses the obstacle cars' actions."""
         if self.driver is not None and self.n_traffic:
-            obs_cars = self._traffic_obs()
-            act = np.asarray(self.driver.act(obs_cars), np.float64).reshape(self.n_traffic, 2)
+            act = np.asarray(self.driver.act(self._traffic_obs()), np.float64).reshape(self.n_traffic, 2)
             act = np.clip(act, -1.0, 1.0)
             self.throttle[1:] = throttle_from_action(act[:, 0])
-            self.steer_target[1:] = steer_from_action(act[:, 1], car)
-        dt = car.physics_dt
-        for _ in range(car.physics_substeps):
-            self.w = wheel_speed_step(self.w, self.throttle, dt, car)
-            self.steer = steer_rate_limit(self.steer, self.steer_target, dt, car)
-            self._apply_motors()
-            self.t += dt
-            self._kinematic_obstacles(self.t)
+            self.steer_target[1:] = steer_from_action(act[:, 1], self.car)
+
+    def substep(self, dt: float | None = None) -> None:
+        """One physics step (default the car's physics_dt): friction model, steering slew,
+        motors, kinematic obstacles, Bullet, contacts."""
+        car = self.car
+        full = car.physics_dt
+        dt = full if dt is None else dt
+        if dt <= 0:
+            return
+        self.w = wheel_speed_step(self.w, self.throttle, dt, car)
+        if self.brake:
+            self.w[0] = 0.0
+        self.steer = steer_rate_limit(self.steer, self.steer_target, dt, car)
+        self._apply_motors()
+        self.t += dt
+        self._kinematic_obstacles(self.t)
+        if abs(dt - full) > 1e-12:
+            self.bc.setTimeStep(dt)
             self.bc.stepSimulation()
-            if not self.collided:
-                self._check_contacts()
+            self.bc.setTimeStep(full)
+        else:
+            self.bc.stepSimulation()
+        if not self.collided:
+            self._check_contacts()
+
+    def end_period(self) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+        """End of a control period: lidar and the step results (see :meth:`step`)."""
         self.steps += 1
         obs = self._observe()
-        reward_inputs = {"throttle": np.array([self.throttle[0]]), "a_steer": np.array([a[1]]),
+        reward_inputs = {"throttle": np.array([self.throttle[0]]), "a_steer": np.array([self.action[1]]),
                          "a_steer_prev": np.array([self.prev_action[1]])}
-        self.prev_action = a
+        self.prev_action = self.action
         info = {"t": self.t, "progress": self.progress(), "contact_with": self.contact_with,
                 "state": self.agent_state()}
         return obs[None, :], reward_inputs, np.array([self.collided]), info
