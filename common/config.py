@@ -148,6 +148,37 @@ class ActuatorConfig(Section):
     brake_current_a: float = Field(20.0, ge=0)
 
 
+class SimConfig(Section):
+    """The simulator service (``racecav sim``): PyBullet world playing the car (HIL stand-in)."""
+
+    scenario: str = "head-to-head"
+    """Scenario name (common/data/scenarios) or TOML path; "racetrack" for the training world."""
+    mode: Literal["realtime", "lockstep"] = "realtime"
+    """realtime: the world runs against the wall clock, a command applies when it arrives;
+    lockstep: each control step waits for the command answering the latest scan and applies it
+    after the controller's reported compute latency (deterministic)."""
+    real_time_factor: float = Field(1.0, ge=0)
+    """Sim seconds per wall second in realtime mode; 0 = as fast as possible."""
+    watchdog_s: float = Field(0.25, gt=0)
+    """Realtime: the last command is held at most this long (wall), then the car brakes. 2.5 scan
+    periods: one late scan must not brake the car, a dead controller must."""
+    lockstep_timeout_s: float = Field(2.0, gt=0)
+    """Lockstep: republish the scan if no answer came within this (wall) time; keep waiting."""
+    seed: int = 0
+    """Seed of the first episode; episode k uses seed + k unless a reset names one."""
+    on_end: Literal["hold", "reset"] = "hold"
+    """At contact or the end of the trial: hold (stop stepping, report done) or start the next
+    episode."""
+    lidar_all: bool = False
+    """Cast the lidar for every car (only needed by a traffic driver that observes)."""
+    heading: Literal["default", "reversed"] | None = None
+    """Override the racetrack scenario's agent heading."""
+    car: str = "slash"
+    """Car file (common/data/cars)."""
+    publish_obstacles: bool = True
+    """Publish ground-truth ObstacleStates every step."""
+
+
 class EnvConfig(Section):
     """The training env ``racecav/Overtake-v0`` and its batched VecEnv (training/env.py)."""
 
@@ -180,6 +211,7 @@ class Config(Section):
     env: EnvConfig = EnvConfig()
     sensor: SensorConfig = SensorConfig()
     actuator: ActuatorConfig = ActuatorConfig()
+    sim: SimConfig = SimConfig()
 
     def digest(self) -> str:
         """Short hash of the effective configuration, reported in every ServiceStatus."""

@@ -93,7 +93,7 @@ class PurePursuitDriver(TrafficDriver):
         return np.stack([a_thr, a_steer], axis=1)
 
 
-DRIVERS = {"pure_pursuit": PurePursuitDriver}
+DRIVERS = {"pure_pursuit": PurePursuitDriver, "centerline": PurePursuitDriver}
 
 
 def make_driver(name: str) -> TrafficDriver:
