@@ -120,7 +120,8 @@ def downsample(th: np.ndarray, r: np.ndarray, spec: LidarSpec, p: PreprocessPara
     else:
         w = np.where(gap > 0, (rays - th[lo]) / np.where(gap > 0, gap, 1.0), 0.0)
         both = np.isfinite(r[lo]) & np.isfinite(r[hi])
-        out = np.where(both, r[lo] + w * (r[hi] - r[lo]), r[near])
+        with np.errstate(invalid="ignore"):  # inf - inf where a neighbour is a hole: not used
+            out = np.where(both, r[lo] + w * (r[hi] - r[lo]), r[near])
         if p.downsample == "min":
             half = spec.angle_increment / 2
             a = np.searchsorted(th, rays - half, side="left")

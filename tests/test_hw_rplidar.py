@@ -1,0 +1,336 @@
+"""RPLIDAR S2: protocol vectors, dense decoding, and the real driver against the emulator on a pty."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from racecav.common.lidar import LidarSpec, ray_angles
+from racecav.services.sensor import rplidar_protocol as rp
+from racecav.services.sensor.emulator import RplidarEmulator, WallScene, default_walls
+from racecav.services.sensor.preprocess import PreprocessParams, cut_angle_deg, preprocess, revolution_to_scan
+from racecav.services.sensor.rplidar_driver import RplidarDriver
+
+H = bytes.fromhex
+
+
+# --- byte-exact vectors (shared/reference/hardware-protocols.md) ------------------------------
+
+def test_request_vectors():
+    assert rp.motor_speed_request(0) == H("A5 A8 02 00 00 0F")
+    assert rp.motor_speed_request(600) == H("A5 A8 02 58 02 55")
+    assert rp.express_scan_request(0) == H("A5 82 05 00 00 00 00 00 22")
+    assert rp.express_scan_request(1) == H("A5 82 05 01 00 00 00 00 23")
+    assert rp.conf_request(rp.CONF_SCAN_MODE_COUNT) == H("A5 84 04 70 00 00 00 55")
+    assert rp.conf_request(rp.CONF_SCAN_MODE_ANS_TYPE, 1) == H("A5 84 06 75 00 00 00 01 00 53")
+    assert rp.conf_request(rp.CONF_SCAN_MODE_TYPICAL) == H("A5 84 04 7C 00 00 00 59")
+    assert rp.request(rp.CMD_STOP) == H("A5 25") and rp.request(rp.CMD_RESET) == H("A5 40")
+
+
+@pytest.mark.parametrize("desc,hexs", [
+    (rp.Descriptor(0x14, 0, rp.ANS_INFO), "A5 5A 14 00 00 00 04"),
+    (rp.Descriptor(3, 0, rp.ANS_HEALTH), "A5 5A 03 00 00 00 06"),
+    (rp.Descriptor(5, 1, rp.ANS_STANDARD), "A5 5A 05 00 00 40 81"),
+    (rp.Descriptor(0x54, 1, rp.ANS_EXPRESS), "A5 5A 54 00 00 40 82"),
+    (rp.Descriptor(0x84, 1, rp.ANS_ULTRA), "A5 5A 84 00 00 40 84"),
+    (rp.Descriptor(0x54, 1, rp.ANS_DENSE), "A5 5A 54 00 00 40 85"),
+])
+def test_descriptor_vectors(desc, hexs):
+    assert desc.encode() == H(hexs)
+    assert rp.Descriptor.parse(H(hexs)) == desc
+
+
+def test_request_parser_checks_checksums():
+    p = rp.RequestParser()
+    bad = bytearray(rp.motor_speed_request(600))
+    bad[-1] ^= 1
+    reqs = p.feed(b"\x00\x17" + rp.request(rp.CMD_GET_INFO) + bytes(bad) + rp.conf_request(0x75, 1))
+    assert [(r.cmd, r.payload) for r in reqs] == [(0x50, b""), (0x84, H("75 00 00 00 01 00"))]
+    assert p.errors >= 2
+
+
+# --- decoding ---------------------------------------------------------------------------------
+
+def test_dense_capsule_layout_and_interpolation_across_zero():
+    d0 = np.arange(40) * 10 + 500
+    c0 = rp.encode_dense_capsule(358.0, d0)
+    c1 = rp.encode_dense_capsule(2.5, np.full(40, 900))
+    assert len(c0) == rp.CAPSULE_LEN and c0[0] >> 4 == 0xA and c0[1] >> 4 == 0x5
+    assert rp.capsule_checksum_ok(c0) and rp.capsule_start(c0) == (358.0, False)
+    assert np.frombuffer(c0[4:], "<u2").tolist() == d0.tolist()  # little-endian whole mm
+    s = rp.ScanStream(rp.ANS_DENSE)
+    assert len(s.feed(c0).angle_deg) == 0  # decoded only once the next capsule arrives
+    out = s.feed(c1)
+    want = np.mod(358.0 + 4.5 * np.arange(40) / 40, 360.0)  # difference taken modulo 360
+    np.testing.assert_allclose(out.angle_deg, want, atol=1e-9)
+    np.testing.assert_array_equal(out.dist_mm, d0)
+    assert out.start.sum() == 1 and out.angle_deg[out.start][0] < 1.0  # wrapped past 0
+
+
+def test_first_capsule_of_a_scan_is_not_paired_with_older_data():
+    s = rp.ScanStream(rp.ANS_DENSE)
+    s.feed(rp.encode_dense_capsule(100.0, np.full(40, 1)) + rp.encode_dense_capsule(104.5, np.full(40, 2)))
+    out = s.feed(rp.encode_dense_capsule(10.0, np.full(40, 3), new_scan=True)
+                 + rp.encode_dense_capsule(14.5, np.full(40, 4)))
+    assert out.dist_mm.tolist() == [3] * 40
+
+
+def test_express_capsule_round_trip():
+    d = np.arange(32) * 4 + 1000
+    off = np.arange(32) % 64
+    c0 = rp.encode_express_capsule(90.0, d, off)
+    c1 = rp.encode_express_capsule(93.0, d)
+    out = rp.ScanStream(rp.ANS_EXPRESS).feed(c0 + c1)
+    np.testing.assert_array_equal(out.dist_mm, d)
+    np.testing.assert_allclose(out.angle_deg, 90.0 + 3.0 * np.arange(32) / 32 - off / 8.0)
+
+
+def test_standard_nodes_resync_after_garbage_and_lost_byte():
+    nodes = [rp.encode_standard_node(a, 1000 + a, start=(a == 0)) for a in range(0, 360, 3)]
+    stream = b"".join(nodes[:10]) + H("FF 00 13") + b"".join(nodes[10:20]) + nodes[20][1:] + b"".join(nodes[21:])
+    s = rp.ScanStream(rp.ANS_STANDARD)
+    out = s.feed(stream[:333])
+    out2 = s.feed(stream[333:])
+    angles = np.concatenate([out.angle_deg, out2.angle_deg])
+    dists = np.concatenate([out.dist_mm, out2.dist_mm])
+    np.testing.assert_allclose(dists - angles, 1000.0, atol=0.25)  # every node decoded is right
+    assert len(angles) >= len(nodes) - 3 and s.stats.bad_nodes > 0
+
+
+def _dense_stream(scene, n_caps, spr=3200, first=0):
+    caps = []
+    for k in range(first, first + n_caps):
+        q0 = round((k * 40 % spr) * 360 * 64 / spr) % (360 * 64)
+        q1 = round(((k + 1) * 40 % spr) * 360 * 64 / spr) % (360 * 64)
+        a = q0 / 64 + ((q1 - q0) % (360 * 64)) / 64 * np.arange(40) / 40
+        caps.append(rp.encode_dense_capsule(q0 / 64, scene.ranges_mm(np.mod(a, 360.0)), new_scan=(k == 0)))
+    return caps
+
+
+def _matches_scene(scene, angle_deg, dist_mm, tol_mm=1.0):
+    """Fraction of samples whose distance is what the scene has at the decoded angle."""
+    truth = scene.ranges_mm(np.asarray(angle_deg))
+    return float(np.mean(np.abs(truth - dist_mm) <= tol_mm))
+
+
+def test_stream_recovers_from_checksum_garbage_and_truncation():
+    scene = WallScene(default_walls())
+    caps = _dense_stream(scene, 400)
+    rng = np.random.default_rng(1)
+    bad = bytearray(caps[50])
+    bad[40] ^= 0x21  # checksum failure
+    caps[50] = bytes(bad)
+    caps[120] = caps[120][:37]  # truncated capsule
+    caps[200] = rng.integers(0, 256, 300, dtype=np.uint8).tobytes() + caps[200]  # garbage
+    data = b"".join(caps)
+    s = rp.ScanStream(rp.ANS_DENSE)
+    outs = [s.feed(data[i:i + 997]) for i in range(0, len(data), 997)]  # arbitrary read sizes
+    a = np.concatenate([o.angle_deg for o in outs])
+    d = np.concatenate([o.dist_mm for o in outs])
+    assert s.stats.checksum >= 2 and s.stats.resync_bytes >= 300
+    assert s.stats.capsules >= 396
+    assert len(a) >= (396 - 6) * 40  # only the pairs touching a damaged capsule are lost
+    assert _matches_scene(scene, a, d) > 0.998  # and nothing wrong got through
+
+
+def test_revolutions_cut_where_asked():
+    scene = WallScene(default_walls())
+    s = rp.ScanStream(rp.ANS_DENSE)
+    cut = 48.0
+    asm = rp.RevolutionAssembler(cut)
+    revs = asm.add(s.feed(b"".join(_dense_stream(scene, 80 * 4))))
+    assert len(revs) == 3  # 4 turns from 0 deg: the partial turns before 48 and after the last cut are not whole
+    for r in revs:
+        assert len(r.angle_deg) == 3200
+        assert abs(((r.angle_deg[0] - cut + 180) % 360) - 180) < 4.5
+
+
+# --- preprocessing ----------------------------------------------------------------------------
+
+def _rev_from_scene(scene, spr=3200):
+    a = np.arange(spr) * 360.0 / spr
+    return a, scene.ranges_mm(a)
+
+
+def test_preprocess_matches_scene_at_ray_angles():
+    spec = LidarSpec()
+    scene = WallScene(default_walls())
+    a, d = _rev_from_scene(scene)
+    out = preprocess(a, d, spec)
+    truth = scene.ranges_mm(-np.degrees(ray_angles(spec).astype(np.float64))) / 1000.0
+    assert out.shape == (170,) and out.dtype == np.float32
+    err = np.abs(out - truth)
+    assert np.median(err) < 0.002 and np.mean(err < 0.01) > 0.97  # larger only at the box's edges
+
+
+def test_preprocess_replaces_outliers_by_interpolation():
+    spec = LidarSpec()
+    a = np.arange(3200) * 360.0 / 3200
+    d = np.full(3200, 2000.0)
+    ahead = np.argmin(np.abs(a - 10.0))  # 10 deg to the right
+    d[ahead] = 0.0  # no return
+    d[ahead + 7] = np.nan
+    d[ahead + 15] = 60000.0  # beyond range_max
+    d[ahead + 22] = 400.0  # isolated spike
+    d[ahead + 30:ahead + 32] = 10.0  # below range_min
+    out = preprocess(a, d, spec)
+    np.testing.assert_allclose(out, 2.0, atol=1e-5)
+
+
+def test_preprocess_keeps_real_objects_and_long_holes():
+    spec = LidarSpec()
+    a = np.arange(3200) * 360.0 / 3200
+    d = np.full(3200, 3000.0)
+    d[(a > 350) | (a < 5)] = 800.0  # a 15 deg wide object just left of centre: not a spike
+    d[(a > 20) & (a < 40)] = 0.0  # 20 deg of no return: an opening, not an outlier
+    out = preprocess(a, d, spec, params=PreprocessParams(max_gap_deg=6.0))
+    th = np.degrees(ray_angles(spec))
+    assert np.all(out[(th > -4) & (th < 9)] == pytest.approx(0.8))
+    assert np.all(np.isinf(out[(th < -22) & (th > -38)]))  # right side (device CW)
+
+
+def test_mount_yaw_rotates_the_scan():
+    spec = LidarSpec()
+    a = np.arange(3200) * 360.0 / 3200
+    d = np.where(np.abs(((a - 90) + 180) % 360 - 180) < 10, 1000.0, 4000.0)  # object at device 90 deg
+    # The device's 0 mark points left (+90 deg): its 90 deg (clockwise) is straight ahead.
+    out = preprocess(a, d, spec, mount_yaw=math.pi / 2)
+    assert out[85] == pytest.approx(1.0) and out[0] == pytest.approx(4.0)
+    assert cut_angle_deg(spec, 0.0) == pytest.approx(48.0)
+
+
+def test_revolution_to_scan_is_a_valid_real_scan():
+    spec = LidarSpec()
+    a, d = _rev_from_scene(WallScene(default_walls()))
+    k = int(np.searchsorted(a, cut_angle_deg(spec)))  # a revolution as the driver cuts it
+    a, d = np.roll(a, -k), np.roll(d, -k)
+    scan = revolution_to_scan(a, d, 5_000_000_000, 31.25, 7, spec)
+    assert scan.source == "real" and scan.seq == 7 and len(scan.ranges) == 170
+    assert scan.angle_min == pytest.approx(-math.pi / 4) and scan.time_increment < 0
+    # ranges[0] (rightmost) is measured last, just before the cut: stamped a few ms before the end.
+    assert 4_990_000_000 < scan.stamp_ns < 5_000_000_000 and scan.scan_time == pytest.approx(0.1)
+
+
+# --- the driver against the emulator on a pty -------------------------------------------------
+
+FAST = dict(reset_wait_s=0.15, spinup_s=0.05, data_timeout_s=0.4, reconnect_s=0.1, reply_timeout_s=0.5)
+
+
+class Run:
+    """Emulator + driver thread; collects revolutions."""
+
+    def __init__(self, tmp_path, scan_mode=None, **emu_kw):
+        self.emu = RplidarEmulator(link=tmp_path / "rplidar", reset_s=0.1, **emu_kw).start()
+        self.revs: list[rp.Revolution] = []
+        self.drv = RplidarDriver(self.emu.path, self.revs.append, scan_mode=scan_mode, **FAST)
+        self.thread = self.drv.start_thread()
+
+    def wait_revs(self, n, timeout=6.0):
+        deadline = time.monotonic() + timeout
+        while len(self.revs) < n and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert len(self.revs) >= n, f"{len(self.revs)} revolutions, driver {self.drv.status()}"
+
+    def close(self):
+        self.drv.stop_event.set()
+        self.thread.join(3)
+        self.emu.stop()
+        assert not self.thread.is_alive()
+
+
+@pytest.fixture
+def lidar(tmp_path):
+    runs = []
+
+    def make(**kw):
+        runs.append(Run(tmp_path, **kw))
+        return runs[-1]
+
+    yield make
+    for r in runs:
+        r.close()
+
+
+def test_handshake_over_pty(lidar):
+    run = lidar()
+    run.wait_revs(2)
+    drv, emu = run.drv, run.emu
+    assert drv.info.model_major == 7 and drv.info.serial == "C0FFEE00112233445566778899AABBCC"
+    assert drv.health == rp.Health(0, 0)
+    assert (drv.mode_count, drv.typical_mode, drv.mode, drv.mode_name) == (3, 1, 1, "DenseBoost")
+    assert drv.answer_type == rp.ANS_DENSE and drv.us_per_sample == pytest.approx(31.25)
+    sent = [rp.request(c, p) if c >= 0x80 else rp.request(c) for _, c, p in emu.requests]
+    expected = [rp.request(rp.CMD_STOP), rp.request(rp.CMD_RESET), rp.request(rp.CMD_GET_INFO),
+                rp.request(rp.CMD_GET_HEALTH), rp.conf_request(0x70), rp.conf_request(0x7C),
+                rp.conf_request(0x75, 1), rp.conf_request(0x71, 1), rp.conf_request(0x7F, 1),
+                rp.motor_speed_request(600), rp.express_scan_request(1)]
+    assert sent[:len(expected)] == expected
+    assert emu.rpm == 600 and emu.streaming
+
+
+def test_dense_revolutions_over_pty_match_the_scene_and_pace(lidar):
+    run = lidar()
+    run.wait_revs(1)
+    t0, n0 = time.monotonic(), len(run.revs)
+    run.wait_revs(n0 + 5)
+    rate = (len(run.revs) - n0) / (time.monotonic() - t0)
+    assert 7.0 < rate < 13.0  # paced like the device: 10 revolutions per second, not a flood
+    for r in run.revs[-3:]:
+        assert len(r.angle_deg) == 3200
+        assert _matches_scene(run.emu.scene, r.angle_deg, r.dist_mm) > 0.998
+    assert run.drv.stats.parser.errors() == 0
+
+
+@pytest.mark.parametrize("mode,atype", [(0, rp.ANS_STANDARD), (2, rp.ANS_EXPRESS)])
+def test_other_scan_modes_over_pty(lidar, mode, atype):
+    run = lidar(scan_mode=mode)
+    run.wait_revs(2)
+    assert run.drv.answer_type == atype
+    r = run.revs[-1]
+    assert _matches_scene(run.emu.scene, r.angle_deg, r.dist_mm, tol_mm=1.0) > 0.99
+
+
+def test_faults_over_pty_are_counted_and_recovered(lidar):
+    run = lidar()
+    run.wait_revs(1)
+    emu = run.emu
+    emu.corrupt_next(3)
+    emu.inject_garbage(500)
+    time.sleep(0.15)
+    emu.truncate_next(2)
+    n = len(run.revs)
+    run.wait_revs(n + 4)
+    st = run.drv.stats.parser
+    assert st.checksum >= 3 and st.resync_bytes >= 500
+    assert run.drv.stats.restarts == 0 and run.drv.stats.connects == 1
+    for r in run.revs[-4:]:
+        assert _matches_scene(emu.scene, r.angle_deg, r.dist_mm) > 0.998
+    assert len(run.revs[-1].angle_deg) == 3200  # later revolutions are whole again
+
+
+def test_unplug_and_replug(lidar):
+    run = lidar()
+    run.wait_revs(1)
+    run.emu.unplug(0.6)
+    time.sleep(0.3)
+    assert run.drv.stats.disconnects == 1 and run.drv.state in ("waiting for device", "disconnected")
+    n = len(run.revs)
+    run.wait_revs(n + 2, timeout=8)
+    assert run.drv.stats.connects == 2 and run.emu.plug_count == 2 and run.thread.is_alive()
+
+
+def test_health_error_resets_and_restarts(lidar):
+    run = lidar()
+    run.wait_revs(1)
+    run.emu.set_health(rp.HEALTH_ERROR, 0x8003)
+    deadline = time.monotonic() + 5
+    while run.drv.stats.restarts == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert run.drv.stats.restarts == 1 and "0x8003" in run.drv.stats.last_error
+    n = len(run.revs)
+    run.wait_revs(n + 2)
+    assert run.drv.health.status == rp.HEALTH_OK
