@@ -197,12 +197,14 @@ def run(args: argparse.Namespace, cfg=None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     seen = 0
+    shown: dict[str, float | None] = {}
     try:
         while not stop.wait(0.2):
             recs = emu.frames()
             if not args.quiet:
-                for r in recs[seen:]:
-                    if r.name != "GET_VALUES":
+                for r in recs[seen:]:  # changes only: the actuator repeats itself at 50 Hz
+                    if r.name != "GET_VALUES" and shown.get(r.name, "") != r.value:
+                        shown[r.name] = r.value
                         print(f"{r.t:.3f} {r.name} {r.value}", flush=True)
             seen = len(recs)
     except KeyboardInterrupt:

@@ -26,7 +26,7 @@ NAMES = {COMM_FW_VERSION: "FW_VERSION", COMM_GET_VALUES: "GET_VALUES", COMM_SET_
          COMM_SET_RPM: "SET_RPM", COMM_SET_POS: "SET_POS", COMM_SET_SERVO_POS: "SET_SERVO_POS",
          COMM_ALIVE: "ALIVE"}
 
-MAX_PAYLOAD = 4096  # longer "long frames" are not something this car sends or expects
+MAX_PAYLOAD = 1024  # longer frames (configuration dumps) are not something this car sends or expects
 
 
 class FrameError(ValueError):
@@ -188,39 +188,54 @@ def encode_values(values: dict[str, float]) -> bytes:
 # --- streaming parser -----------------------------------------------------------------------------
 
 class FrameParser:
-    """Split a byte stream into payloads; skips garbage and bad frames (counted in ``errors``)."""
+    """Split a byte stream into payloads; skips garbage and bad frames (counted in ``errors``).
+
+    A corrupted byte can look like the header of a long frame and make the parser wait for
+    bytes that will never form it; so while a frame is incomplete, a complete valid frame found
+    further on wins and the false start is dropped.
+    """
 
     def __init__(self) -> None:
         self.buf = bytearray()
         self.errors = 0
+
+    @staticmethod
+    def _check(buf: bytearray, i: int) -> tuple[str, int]:
+        """("ok" | "bad" | "short", total length) of a frame candidate starting at buf[i]."""
+        start = buf[i]
+        if start not in (0x02, 0x03):
+            return "bad", 0
+        head = 2 if start == 0x02 else 3
+        if len(buf) - i < head:
+            return "short", 0
+        n = buf[i + 1] if start == 0x02 else (buf[i + 1] << 8) | buf[i + 2]
+        if n == 0 or n > MAX_PAYLOAD:
+            return "bad", 0
+        total = head + n + 3
+        if len(buf) - i < total:
+            return "short", total
+        end = i + head + n
+        if buf[i + total - 1] != 0x03 or crc16(bytes(buf[i + head:end])) != (buf[end] << 8) | buf[end + 1]:
+            return "bad", total
+        return "ok", total
 
     def feed(self, data: bytes) -> list[bytes]:
         self.buf += data
         out: list[bytes] = []
         buf = self.buf
         while buf:
-            start = buf[0]
-            if start not in (0x02, 0x03):
-                del buf[:1]
-                self.errors += 1
-                continue
-            head = 2 if start == 0x02 else 3
-            if len(buf) < head:
-                break
-            n = buf[1] if start == 0x02 else (buf[1] << 8) | buf[2]
-            if n == 0 or n > MAX_PAYLOAD:
-                del buf[:1]
-                self.errors += 1
-                continue
-            total = head + n + 3
-            if len(buf) < total:
-                break
-            payload = bytes(buf[head:head + n])
-            crc = (buf[head + n] << 8) | buf[head + n + 1]
-            if buf[total - 1] != 0x03 or crc16(payload) != crc:
+            state, total = self._check(buf, 0)
+            if state == "ok":
+                head = 2 if buf[0] == 0x02 else 3
+                out.append(bytes(buf[head:total - 3]))
+                del buf[:total]
+            elif state == "bad":
                 del buf[:1]  # resync: the real frame may start inside this one
                 self.errors += 1
-                continue
-            out.append(payload)
-            del buf[:total]
+            else:
+                later = next((j for j in range(1, len(buf)) if self._check(buf, j)[0] == "ok"), None)
+                if later is None:
+                    break  # genuinely incomplete: wait for more bytes
+                del buf[:later]
+                self.errors += 1
         return out
