@@ -53,6 +53,8 @@ class BicycleParams(_Frozen):
     """First-order steering lag (s) on top of the rate limit; 0 = none."""
     speed_tau: float = Field(0.0, ge=0)
     """Lag of body speed behind wheel speed (s); 0 = none."""
+    scrub: float = Field(0.0, ge=0)
+    """Speed loss in turns of the fast model: v = v_wheel * (1 - scrub * tan(delta)^2)."""
 
 
 class CarParams(_Frozen):

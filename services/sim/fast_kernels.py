@@ -311,35 +311,66 @@ def contacts(x, y, yaw, active, walls, wall_box, corners, hx, hy, wall_r, check,
 
 
 @njit(cache=True, fastmath=True)
-def integrate(x, y, yaw, v, delta, delta_cmd, w, speed_scale, active, wheel_radius, lf, lr,
-              steer_tau, speed_tau, dt):
-    """One physics substep of the kinematic single-track model for every car.
+def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, wheel_radius,
+              wheelbase, mass, g, lf, lr, iz, mu, c_sf, c_sr, steer_tau, speed_tau, scrub, v_kin,
+              dt):
+    """One physics substep of the single-track model for every car.
 
     The wheel speed ``w`` and the rate-limited steering command ``delta_cmd`` of this substep come
-    from the shared actuation functions (common/vehicle.py); this adds the fitted lags and the
-    pose integration (midpoint in yaw). Reference point base_link, slip angle
-    ``beta = atan(lr / (lf + lr) * tan(delta))``.
+    from the shared actuation functions (common/vehicle.py); this adds the fitted lags and
+    integrates the CommonRoad/f1tenth single-track model (no load transfer) in its state
+    (slip angle ``beta`` and yaw rate ``r`` at the CoG, ``lr`` ahead of the rear axle), with
+    implicit Euler for (beta, r) (stiff at low speed) and the kinematic model below ``v_kin``.
+    The speed at the CoG follows the wheel speed (lag ``speed_tau``), reduced in turns by
+    ``1 - scrub * tan(delta)^2`` (tyre scrub of the locked 4WD). The pose is base_link's.
     """
     N, C = x.shape
     L = lf + lr
     ks = dt / steer_tau if steer_tau > dt else 1.0
     kv = dt / speed_tau if speed_tau > dt else 1.0
+    ox = 0.5 * wheelbase - lr  # base_link ahead of the CoG (m)
     for n in range(N):
         for c in range(C):
             if not active[n, c]:
                 continue
             delta[n, c] += (delta_cmd[n, c] - delta[n, c]) * ks
-            v_target = speed_scale[n, c] * w[n, c] * wheel_radius
+            d = delta[n, c]
+            td = math.tan(d)
+            v_target = speed_scale[n, c] * w[n, c] * wheel_radius * (1.0 - scrub * td * td)
             v0 = v[n, c]
             v1 = v0 + (v_target - v0) * kv
             vm = 0.5 * (v0 + v1)
-            td = math.tan(delta[n, c])
-            beta = math.atan(lr / L * td)
-            rate = vm * math.cos(beta) * td / L
-            ym = yaw[n, c] + 0.5 * dt * rate
-            x[n, c] += vm * math.cos(ym + beta) * dt
-            y[n, c] += vm * math.sin(ym + beta) * dt
-            yaw[n, c] = yaw[n, c] + rate * dt
+            if vm < v_kin:
+                b = math.atan(lr / L * td)
+                rr = vm * math.cos(b) * td / L
+            else:
+                a11 = -mu * g * (c_sr * lf + c_sf * lr) / (vm * L)
+                a12 = mu * g * lf * lr * (c_sr - c_sf) / (vm * vm * L) - 1.0
+                b1 = mu * g * c_sf * lr / (vm * L)
+                a21 = mu * mass * g * lf * lr * (c_sr - c_sf) / (iz * L)
+                a22 = -mu * mass * g * lf * lr * (lf * c_sf + lr * c_sr) / (iz * L * vm)
+                b2 = mu * mass * g * lf * lr * c_sf / (iz * L)
+                # (I - dt A) x1 = x0 + dt b d
+                m11 = 1.0 - dt * a11
+                m12 = -dt * a12
+                m21 = -dt * a21
+                m22 = 1.0 - dt * a22
+                r1 = beta[n, c] + dt * b1 * d
+                r2 = r[n, c] + dt * b2 * d
+                det = m11 * m22 - m12 * m21
+                b = (m22 * r1 - m12 * r2) / det
+                rr = (m11 * r2 - m21 * r1) / det
+            beta[n, c] = b
+            r[n, c] = rr
+            ym = yaw[n, c] + 0.5 * dt * rr
+            # base_link velocity in the body frame: CoG velocity + r x offset
+            vx = vm * math.cos(b)
+            vy = vm * math.sin(b) + rr * ox
+            cm = math.cos(ym)
+            sm = math.sin(ym)
+            x[n, c] += (vx * cm - vy * sm) * dt
+            y[n, c] += (vx * sm + vy * cm) * dt
+            yaw[n, c] += rr * dt
             v[n, c] = v1
 
 

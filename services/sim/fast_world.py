@@ -30,6 +30,8 @@ from racecav.services.sim import fast_kernels as K
 CENTERLINE_DS = 0.05  # m, spacing of the dense centerline table used by resets and traffic
 RESPAWN_TRIES = 24
 RESPAWN_MIN_DIST = 2.5  # m from every other car when an obstacle car is respawned
+GRAVITY = 9.81
+V_KIN = 0.3  # m/s: below this speed the single-track model is kinematic (tyre model singular)
 
 
 class TrafficDriver(Protocol):
@@ -75,10 +77,10 @@ class PolicyDriver:
 
 def make_driver(driver) -> TrafficDriver:
     """``"centerline"``, a TrafficDriver, or a plain callable policy (wrapped in PolicyDriver)."""
-    if driver is None or driver == "centerline":
+    if driver is None or driver in ("centerline", "pure_pursuit"):
         return CenterlineDriver()
     if isinstance(driver, str):
-        raise ValueError(f"traffic driver: unknown name {driver!r} (known: 'centerline')")
+        raise ValueError(f"traffic driver: unknown name {driver!r} (known: 'centerline' = 'pure_pursuit')")
     if hasattr(driver, "needs_lidar"):
         return driver
     if callable(driver):
@@ -157,9 +159,14 @@ class FastWorld:
                                   np.maximum(self.walls[:, 0], self.walls[:, 2]),
                                   np.maximum(self.walls[:, 1], self.walls[:, 3])], axis=1)
         self.wall_r = 0.5 * float(world.wall_thickness)
-        self.faces = K.wall_faces(self.walls, self.wall_r)
-        self.cl = dense_centerline(world)
-        self.cl_ds = float(np.hypot(*(self.cl[1, :2] - self.cl[0, :2])))
+        # wall boxes as the PyBullet backend builds them: extended by half a thickness at both
+        # ends (no gaps at the joints of bends)
+        self.faces = K.wall_faces(self.walls, self.wall_r, extend=self.wall_r)
+        # worlds without a centerline (intersection, open floor): no traffic, no random resets
+        self.cl = dense_centerline(world) if world.centerline is not None else np.zeros((1, 4))
+        if world.centerline is None and n_obstacles:
+            raise ValueError(f"n_obstacles: world {world.name!r} has no centerline for traffic")
+        self.cl_ds = float(np.hypot(*(self.cl[1, :2] - self.cl[0, :2]))) if len(self.cl) > 1 else 1.0
         self.lat_max = max(0.0, 0.5 * float(world.lane_width) - 0.5 * car.width - 0.15)
         self.hx, self.hy = 0.5 * car.length, 0.5 * car.width
         m = car.lidar_mount
@@ -167,11 +174,12 @@ class FastWorld:
         ang = lidar_mod.ray_angles(self.spec).astype(np.float64)
         self.ray_c, self.ray_s = np.cos(ang), np.sin(ang)
         b = car.bicycle
-        self.lf, self.lr, self.steer_tau, self.speed_tau = b.lf, b.lr, b.steer_tau, b.speed_tau
+        self.set_bicycle(b)
 
         f = np.zeros
         self.x, self.y, self.yaw = f((N, C)), f((N, C)), f((N, C))
         self.v, self.w, self.delta, self.delta_cmd = f((N, C)), f((N, C)), f((N, C)), f((N, C))
+        self.beta, self.r = f((N, C)), f((N, C))  # slip angle and yaw rate of the single-track model
         self.active = np.ones((N, C), dtype=bool)
         self.cl_idx = np.zeros((N, C), dtype=np.int64)
         self.lane_offset, self.vfac = f((N, C)), f((N, C))
@@ -190,6 +198,13 @@ class FastWorld:
         self.time = f(N)
         self.respawns = 0
         self.rng = np.random.default_rng(seed)
+
+    def set_bicycle(self, b) -> None:
+        """Use single-track parameters ``b`` (BicycleParams or any object with its fields)."""
+        self.lf, self.lr, self.iz, self.mu = float(b.lf), float(b.lr), float(b.iz), float(b.mu)
+        self.c_sf, self.c_sr = float(b.c_sf), float(b.c_sr)
+        self.steer_tau, self.speed_tau = float(b.steer_tau), float(b.speed_tau)
+        self.scrub = float(getattr(b, "scrub", 0.0))
 
     # ------------------------------------------------------------------ resets
     def seed(self, seed: int | None) -> None:
@@ -214,6 +229,8 @@ class FastWorld:
                           self.lane_offset, self.vfac, self.active, self.cl, self.cl_ds, u[i],
                           self.n_cars, self.heading == "reversed", self.lat_max, 0.1, 0.55, 1.0)
         self.delta_cmd[envs] = 0.0
+        self.beta[envs] = 0.0
+        self.r[envs] = 0.0
         self.time[envs] = 0.0
         self.wall_hit[envs] = False
         self.car_hit[envs] = -1
@@ -227,6 +244,8 @@ class FastWorld:
                 getattr(self, name)[env, car] = val
         if delta is not None:
             self.delta_cmd[env, car] = delta
+        self.beta[env, car] = 0.0
+        self.r[env, car] = 0.0
         if x is not None or y is not None:
             self.cl_idx[env, car] = K.global_nearest(self.x[env, car], self.y[env, car], self.cl)
         self._scan(np.array([env]))
@@ -258,9 +277,11 @@ class FastWorld:
         for _ in range(self.substeps):
             self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
             self.delta_cmd = vehicle_mod.steer_rate_limit(self.delta_cmd, target, self.dt, car)
-            K.integrate(self.x, self.y, self.yaw, self.v, self.delta, self.delta_cmd, self.w,
-                        self.speed_scale, self.active, car.wheel_radius, self.lf, self.lr,
-                        self.steer_tau, self.speed_tau, self.dt)
+            K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
+                        self.delta_cmd, self.w, self.speed_scale, self.active, car.wheel_radius,
+                        car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
+                        self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub, V_KIN,
+                        self.dt)
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
                        self.corners, self.hx, self.hy, self.wall_r, self.check, self.wall_hit,
@@ -296,6 +317,7 @@ class FastWorld:
                 self.active[n, c] = False  # no free spot: the car leaves the world
                 self.x[n, c], self.y[n, c] = 1e6 + 10.0 * c, 1e6
             self.delta_cmd[n, c] = self.delta[n, c]
+            self.beta[n, c] = self.r[n, c] = 0.0
         K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
         self.respawns += ns.size
         return int(ns.size)
