@@ -164,6 +164,9 @@ class SimConfig(Section):
     periods: one late scan must not brake the car, a dead controller must."""
     lockstep_timeout_s: float = Field(2.0, gt=0)
     """Lockstep: republish the scan if no answer came within this (wall) time; keep waiting."""
+    wait_for_controller: bool = True
+    """Realtime: an episode's clock starts when the first command after its reset arrives (its
+    first scan is republished every 0.5 s until then), so a trial never starts uncontrolled."""
     seed: int = 0
     """Seed of the first episode; episode k uses seed + k unless a reset names one."""
     on_end: Literal["hold", "reset"] = "hold"

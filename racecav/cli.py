@@ -21,11 +21,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sensor": ("racecav.services.sensor.service", "real lidar: RPLIDAR S2 driver publishing 170-ray Scans"),
     "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),
     "emulate": ("racecav.services.emulate", "device emulators on a pty: rplidar | vesc"),
+    "sim": ("racecav.services.sim.service", "PyBullet world playing the car: Scan/state out, DriveCommand in (realtime or lockstep)"),
+    "scripted": ("racecav.services.sim.scripted", "controller answering each scan with a scripted command program (tests, demos)"),
 }
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
 BENCHES: dict[str, tuple[str, str]] = {
+    "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
     "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency through the router, status queries, codec"),
+    "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
 }
 
 

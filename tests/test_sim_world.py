@@ -142,7 +142,7 @@ def test_reset_with_same_seed_replays_and_schedule_splits_steps():
             return w.agent_state()
         a = run([(0.0, [1.0, 0.3])])
         b = run([(0.0, [1.0, 0.3])])
-        c = run([(0.013, [1.0, 0.3])])
+        c = run([(0.013, [1.0, 0.3])])  # 13 ms late: actuators lag
         w.reset(seed=4)
         for _ in range(15):
             w.step([1.0, 0.3])

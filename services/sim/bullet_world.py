@@ -297,29 +297,39 @@ class BulletWorld:
         self.w[i] = wheel_w / c.speed_scale
 
     # ----------------------------------------------------------------------------- stepping
-    def step(self, actions, schedule=()) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+    def step(self, actions, schedule=(), physical: bool = False) -> tuple[np.ndarray, dict, np.ndarray, dict]:
         """Advance one control period with the agent's action (a_T, a_delta).
 
         :param actions: (1, 2) or (2,) normalised actions in [-1, 1], applied from the start.
         :param schedule: optional ``[(t_rel, action), ...]``: the agent's action switches to
             ``action`` at ``t_rel`` seconds into the period (physics steps are split there). The
             sim service uses it to apply a command after the controller's compute latency.
+        :param physical: actions and schedule entries are physical (T, steering angle in rad),
+            as a DriveCommand carries them, instead of normalised actions.
         :return: obs (1, n_rays), reward inputs {throttle, a_steer, a_steer_prev} (arrays (1,)),
             collided (1,) bool, info {t, progress, contact_with, state}.
         """
-        self.set_action(actions)
+        apply = self.set_physical if physical else self.set_action
+        if physical:
+            apply(*actions)
+        else:
+            apply(actions)
         self.begin_period()
         dt = self.car.physics_dt
-        pending = sorted((float(t), a) for t, a in schedule)
+        pending = sorted(((float(t), a) for t, a in schedule), key=lambda e: e[0])
         for k in range(self.car.physics_substeps):
             t0, t1 = k * dt, (k + 1) * dt
+            # A switch inside a physics step reaches the actuators (wheel-speed model, steering
+            # slew) at its exact time; Bullet itself always steps the full dt (a tiny partial
+            # step would blow up its penetration correction).
             while pending and pending[0][0] < t1 - 1e-12:
                 ts, a = pending.pop(0)
-                if ts > t0 + 1e-12:
-                    self.substep(ts - t0)
+                if ts > t0:
+                    self._actuate(ts - t0)
                     t0 = ts
-                self.set_action(a)
-            self.substep(t1 - t0)
+                apply(*a) if physical else apply(a)
+            self._actuate(t1 - t0)
+            self._physics()
         return self.end_period()
 
     def set_action(self, actions, brake: bool = False) -> None:
@@ -331,6 +341,14 @@ class BulletWorld:
         self.throttle[0] = 0.0 if brake else throttle_from_action(a[0])
         self.steer_target[0] = steer_from_action(a[1], self.car)
 
+    def set_physical(self, throttle: float, steering_angle: float, brake: bool = False) -> None:
+        """Set the agent's physical command (T in [0, 1], wheel angle in rad) as a DriveCommand
+        carries it; clipped to the car's limits exactly like the real actuator's input."""
+        self.action = np.array([float(np.clip(throttle, 0.0, 1.0)), float(steering_angle) / self.car.steer_gain])
+        self.brake = brake
+        self.throttle[0] = 0.0 if brake else float(np.clip(throttle, 0.0, 1.0))
+        self.steer_target[0] = float(np.clip(steering_angle, self.car.delta_min, self.car.delta_max))
+
     def begin_period(self) -> None:
         """Start of a control period: the traffic driver chooses the obstacle cars' actions."""
         if self.driver is not None and self.n_traffic:
@@ -339,27 +357,27 @@ class BulletWorld:
             self.throttle[1:] = throttle_from_action(act[:, 0])
             self.steer_target[1:] = steer_from_action(act[:, 1], self.car)
 
-    def substep(self, dt: float | None = None) -> None:
-        """One physics step (default the car's physics_dt): friction model, steering slew,
-        motors, kinematic obstacles, Bullet, contacts."""
-        car = self.car
-        full = car.physics_dt
-        dt = full if dt is None else dt
+    def substep(self) -> None:
+        """One physics step of the car's physics_dt: actuators, then Bullet."""
+        self._actuate(self.car.physics_dt)
+        self._physics()
+
+    def _actuate(self, dt: float) -> None:
+        """Advance the actuator states by ``dt``: friction-model wheel speed, steering slew."""
         if dt <= 0:
             return
+        car = self.car
         self.w = wheel_speed_step(self.w, self.throttle, dt, car)
         if self.brake:
             self.w[0] = 0.0
         self.steer = steer_rate_limit(self.steer, self.steer_target, dt, car)
+
+    def _physics(self) -> None:
+        """Motors to the actuator states, kinematic obstacles, one Bullet step, contacts."""
         self._apply_motors()
-        self.t += dt
+        self.t += self.car.physics_dt
         self._kinematic_obstacles(self.t)
-        if abs(dt - full) > 1e-12:
-            self.bc.setTimeStep(dt)
-            self.bc.stepSimulation()
-            self.bc.setTimeStep(full)
-        else:
-            self.bc.stepSimulation()
+        self.bc.stepSimulation()
         if not self.collided:
             self._check_contacts()
 

@@ -1,0 +1,333 @@
+"""``racecav sim``: the PyBullet world playing the car on the bus (hardware-in-the-loop stand-in).
+
+It publishes what the real car's services publish, on the same keys: the agent's Scan
+(``source = "sim"``, same format and preprocessing contract as the sensor service's), its
+VehicleState and the ground-truth ObstacleStates; it consumes DriveCommand on the cmd key like
+the actuator, using the command's physical throttle and steering angle.
+
+Two modes (config section ``sim``):
+- realtime: the world runs against the wall clock scaled by ``real_time_factor``; the newest
+  command applies at the next physics substep after it arrives; a command is held at most
+  ``watchdog_s`` (wall), then the car brakes (wheel speed target 0).
+- lockstep: after publishing scan k the world waits for the command answering it
+  (``scan_seq == k``); that command applies ``compute_ns`` into the next control period (the
+  controller's measured compute latency: a slow controller still pays for its slowness). Same
+  seed, same commands => same trajectory.
+
+Stamps are sim time (ns, monotonic across episodes); scan seq is monotonic across episodes.
+Queryables: racecav/<car>/sim/status, .../sim/reset (JSON {"seed": int?, "heading": str?}) and
+.../sim/scenario (JSON {"name": NAME|FILE, "seed": int?}; no payload: current and available).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import queue
+import threading
+import time
+from typing import Any
+
+from racecav.common import keys
+from racecav.common.bus import Service
+from racecav.common.config import Config, ConfigError
+from racecav.common.lidar import make_scan
+from racecav.common.messages import DriveCommand, Obstacle, ObstacleStates, VehicleState
+from racecav.common.scenario import load_scenario, scenario_names
+from racecav.common.vehicle import load_car
+
+log = logging.getLogger("racecav.sim")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", help="scenario name or TOML file (racetrack, racetrack-reversed, "
+                   "right-to-left, head-to-head, left-to-right, or a path); default: sim.scenario")
+    p.add_argument("--racetrack", action="store_true", help="shorthand for --scenario racetrack")
+    p.add_argument("--mode", choices=["realtime", "lockstep"], help="default: sim.mode")
+    p.add_argument("--real-time-factor", type=float, help="realtime mode: sim s per wall s (0 = max)")
+    p.add_argument("--seed", type=int, help="seed of the first episode")
+    p.add_argument("--heading", choices=["default", "reversed"], help="racetrack: agent heading")
+    p.add_argument("--on-end", choices=["hold", "reset"], help="at contact / end of trial")
+    p.add_argument("--lidar-all", action="store_true", help="cast the lidar for every car")
+
+
+def sim_config(args: argparse.Namespace, cfg: Config):
+    """cfg.sim with the command-line overrides applied (validated)."""
+    upd: dict[str, Any] = {}
+    if getattr(args, "racetrack", False):
+        upd["scenario"] = "racetrack"
+    for name, field in (("scenario", "scenario"), ("mode", "mode"), ("real_time_factor", "real_time_factor"),
+                        ("seed", "seed"), ("heading", "heading"), ("on_end", "on_end")):
+        v = getattr(args, name, None)
+        if v is not None:
+            upd[field] = v
+    if getattr(args, "lidar_all", False):
+        upd["lidar_all"] = True
+    try:
+        return type(cfg.sim).model_validate({**cfg.sim.model_dump(), **upd})
+    except Exception as e:
+        raise ConfigError(f"sim: {e}") from None
+
+
+def run(args: argparse.Namespace, cfg: Config) -> int:
+    try:
+        scfg = sim_config(args, cfg)
+        cfg = cfg.model_copy(update={"sim": scfg})
+        svc = SimService(cfg)
+    except (ConfigError, ValueError) as e:
+        print(f"racecav sim: {e}")
+        return 2
+    return svc.run()
+
+
+class SimService(Service):
+    """The sim service (see the module docstring)."""
+
+    def __init__(self, cfg: Config):
+        super().__init__(cfg, "sim")
+        self.scfg = cfg.sim
+        self.car_params = load_car(self.scfg.car)
+        self.scenario_ref = self.scfg.scenario
+        self.world = self._make_world(load_scenario(self.scenario_ref))
+        self.seq = 0
+        self.offset_ns = 0            # sim time of earlier episodes (stamps stay monotonic)
+        self.episode = -1
+        self.next_seed = self.scfg.seed
+        self.requests: queue.Queue = queue.Queue()
+        self.counters = {"watchdog_brakes": 0, "stale_commands": 0, "lockstep_republish": 0,
+                         "overruns": 0}
+        self.last_source = ""
+        self.pending: list[tuple[float, tuple[float, float]]] = []
+        self._rtf_window: list[tuple[float, float]] = []
+        self._info: dict[str, Any] = {}
+        self._new_episode(self.next_seed)
+
+    # ------------------------------------------------------------------ world and episodes
+    def _make_world(self, scenario):
+        from racecav.services.sim.bullet_world import BulletWorld  # pybullet: only when running
+
+        return BulletWorld(scenario, car=self.car_params, lidar_all=self.scfg.lidar_all,
+                           heading=self.scfg.heading if scenario.traffic else None)
+
+    def _new_episode(self, seed: int, heading: str | None = None) -> None:
+        if self.episode >= 0:
+            self.offset_ns += int(round(self.world.t * 1e9)) + int(self.car_params.control_period_s * 1e9)
+        opts = {"heading": heading} if heading and self.world.scenario.traffic else {}
+        self.world.reset(seed=seed, options=opts)
+        self.episode += 1
+        self.seed = seed
+        self.next_seed = seed + 1
+        self.done = False
+        self.pending = []
+        self.world.set_physical(0.0, 0.0, brake=False)
+        self._wall0 = None
+        self._rtf_window = []
+        self._episode_wall_ns = time.monotonic_ns()
+        self.started = not (self.scfg.mode == "realtime" and self.scfg.wait_for_controller)
+
+    def setup(self) -> None:
+        self.pub_scan = self.publisher(self.topic(keys.SCAN))
+        self.pub_state = self.publisher(self.topic(keys.STATE))
+        self.pub_obs = self.publisher(self.topic(keys.OBSTACLES))
+        self.cmd = self.inbox(self.topic(keys.CMD), DriveCommand)
+        self.queryable("reset", self._q_reset)
+        self.queryable("scenario", self._q_scenario)
+        self._publish()
+
+    # ------------------------------------------------------------------ queryables
+    def _request(self, kind: str, data: dict) -> dict:
+        done = threading.Event()
+        box: dict = {}
+        self.requests.put((kind, data, done, box))
+        if not done.wait(10.0):
+            raise TimeoutError(f"{kind}: the sim loop did not answer within 10 s")
+        if "error" in box:
+            raise ValueError(box["error"])
+        return box["reply"]
+
+    def _q_reset(self, payload: bytes | None) -> dict:
+        data = json.loads(payload) if payload else {}
+        if not isinstance(data, dict):
+            raise ValueError("reset: payload must be a JSON object")
+        unknown = set(data) - {"seed", "heading"}
+        if unknown:
+            raise ValueError(f"reset: unknown field(s) {sorted(unknown)}")
+        if "seed" in data and not isinstance(data["seed"], int):
+            raise ValueError("reset.seed: must be an integer")
+        if data.get("heading") not in (None, "default", "reversed"):
+            raise ValueError("reset.heading: must be default or reversed")
+        return self._request("reset", data)
+
+    def _q_scenario(self, payload: bytes | None) -> dict:
+        if not payload:
+            return {"scenario": self.world.scenario.name, "available": scenario_names()}
+        data = json.loads(payload)
+        if not isinstance(data, dict) or not isinstance(data.get("name"), str):
+            raise ValueError("scenario.name: required (a scenario name or TOML path)")
+        if "seed" in data and not isinstance(data["seed"], int):
+            raise ValueError("scenario.seed: must be an integer")
+        load_scenario(data["name"])  # a broken file is refused here, naming the field
+        return self._request("scenario", data)
+
+    def _poll_requests(self) -> bool:
+        """Serve queued reset/scenario requests; True if the episode changed."""
+        changed = False
+        while True:
+            try:
+                kind, data, done, box = self.requests.get_nowait()
+            except queue.Empty:
+                return changed
+            try:
+                if kind == "scenario":
+                    new = self._make_world(load_scenario(data["name"]))
+                    self.world.close()
+                    self.world = new
+                    self.scenario_ref = data["name"]
+                self._new_episode(data.get("seed", self.next_seed), data.get("heading"))
+                self._publish()
+                box["reply"] = {"episode": self.episode, "seed": self.seed,
+                                "scenario": self.world.scenario.name, "seq": self.seq - 1}
+                changed = True
+            except Exception as e:  # reply with the error, keep running
+                box["error"] = f"{kind}: {e}"
+            finally:
+                done.set()
+
+    # ------------------------------------------------------------------ publishing
+    def _stamp(self) -> int:
+        return self.offset_ns + int(round(self.world.t * 1e9))
+
+    def _publish(self) -> None:
+        w, stamp = self.world, self._stamp()
+        self.scan_seq = self.seq
+        self.scan_t = w.t
+        self.pub_scan.put(make_scan(w.scan_ranges, stamp, self.seq, "sim", w.spec))
+        x, y, yaw, vx, vy, r = w.agent_state()
+        self.pub_state.put(VehicleState(stamp_ns=stamp, seq=self.seq, source="sim", x=x, y=y, yaw=yaw,
+                                        vx=vx, vy=vy, yaw_rate=r, steering_angle=float(w.steer[0]),
+                                        collided=w.collided))
+        if self.scfg.publish_obstacles:
+            obs = [Obstacle(id=i + 1, x=o[0], y=o[1], yaw=o[2], speed=o[3], length=self.car_params.length,
+                            width=self.car_params.width) for i, o in enumerate(w.obstacles())]
+            self.pub_obs.put(ObstacleStates(stamp_ns=stamp, seq=self.seq, obstacles=obs))
+        self.seq += 1
+        self._snapshot()
+
+    def _snapshot(self) -> None:
+        """Episode state for the status queryable, taken in the loop thread (PyBullet is not
+        thread-safe: the queryable thread must never touch the world)."""
+        w = self.world
+        rtf = None
+        if len(self._rtf_window) >= 2:
+            (a, sa), (b, sb) = self._rtf_window[0], self._rtf_window[-1]
+            rtf = (sb - sa) / (b - a) if b > a else None
+        self._info = {"mode": self.scfg.mode, "scenario": w.scenario.name, "world": w.world.name,
+                      "heading": w.heading, "seed": self.seed, "episode": self.episode, "t": w.t,
+                      "steps": w.steps, "done": self.done, "collided": w.collided,
+                      "contact_with": w.contact_with, "progress_m": w.progress(), "success": w.success(),
+                      "real_time_factor_target": self.scfg.real_time_factor, "real_time_factor": rtf,
+                      "seq": self.seq - 1, "started": self.started}
+
+    def _after_period(self) -> None:
+        w = self.world
+        if w.collided or w.t >= w.scenario.duration_s - 1e-9:
+            self.done = True
+            self.log.info("episode %d done at t=%.2f s: %s, progress %.2f m, success %s", self.episode,
+                          w.t, w.contact_with or "time up", w.progress(), w.success())
+        self._publish()
+
+    # ------------------------------------------------------------------ loop
+    def step(self) -> None:
+        self._poll_requests()
+        if self.done:
+            if self.scfg.on_end == "reset":
+                self._new_episode(self.next_seed)
+                self._publish()
+            else:
+                self.stop_event.wait(0.05)
+            return
+        if self.scfg.mode == "lockstep":
+            self._step_lockstep()
+        else:
+            self._step_realtime()
+
+    def _step_realtime(self) -> None:
+        w, car = self.world, self.car_params
+        if not self.started:
+            deadline = time.monotonic() + 0.5
+            while self.cmd.latest()[1] <= self._episode_wall_ns:
+                if time.monotonic() > deadline:
+                    self.seq -= 1  # nobody answered yet: the same first scan again
+                    self._publish()
+                    return
+                if self.stop_event.wait(0.005) or not self.requests.empty():
+                    return
+            self.started = True
+        rtf = self.scfg.real_time_factor
+        now = time.monotonic()
+        if self._wall0 is None:
+            self._wall0, self._sim0 = now, w.t
+        w.begin_period()
+        for _ in range(car.physics_substeps):
+            if rtf > 0:
+                due = self._wall0 + (w.t - self._sim0) / rtf
+                lag = time.monotonic() - due
+                if lag < 0:
+                    if self.stop_event.wait(-lag):
+                        return
+                elif lag > 0.5:  # far behind (slow machine, rtf too high): do not sprint to catch up
+                    self.counters["overruns"] += 1
+                    self._wall0, self._sim0 = time.monotonic(), w.t
+            self._apply_newest()
+            w.substep()
+        w.end_period()
+        self._rtf_window.append((time.monotonic(), w.t))
+        self._rtf_window = self._rtf_window[-50:]
+        self._after_period()
+
+    def _apply_newest(self) -> None:
+        cmd, arrival_ns = self.cmd.latest()
+        fresh = cmd is not None and (time.monotonic_ns() - arrival_ns) <= self.scfg.watchdog_s * 1e9
+        if fresh:
+            self.world.set_physical(cmd.throttle, cmd.steering_angle)
+            self.last_source = cmd.source
+        else:
+            if cmd is not None and not self.world.brake:
+                self.counters["watchdog_brakes"] += 1
+            self.world.set_physical(0.0, 0.0, brake=True)
+
+    def _step_lockstep(self) -> None:
+        w = self.world
+        want, t_k = self.scan_seq, self.scan_t
+        waited = time.monotonic()
+        while True:
+            if self.stop_event.is_set():
+                return
+            if self._poll_requests():
+                return  # a new episode started (its first scan is published)
+            cmd = self.cmd.take(timeout=0.05)
+            if cmd is not None:
+                if cmd.scan_seq == want:
+                    break
+                self.counters["stale_commands"] += 1
+            if time.monotonic() - waited > self.scfg.lockstep_timeout_s:
+                self.counters["lockstep_republish"] += 1
+                self.seq -= 1  # same scan again (a lost sample must not dead-lock the run)
+                self._publish()
+                waited = time.monotonic()
+        self.last_source = cmd.source
+        self.pending.append((t_k + cmd.compute_ns * 1e-9, (cmd.throttle, cmd.steering_angle)))
+        end = t_k + self.car_params.control_period_s - 1e-12
+        due = [(max(ta - t_k, 0.0), a) for ta, a in self.pending if ta < end]
+        self.pending = [(ta, a) for ta, a in self.pending if ta >= end]
+        # the command in force at the period start carries on until a due one switches
+        w.step((float(w.throttle[0]), float(w.steer_target[0])), schedule=due, physical=True)
+        self._after_period()
+
+    # ------------------------------------------------------------------ status
+    def info(self) -> dict[str, Any]:
+        return {**self._info, "last_source": self.last_source, **self.counters}
+
+    def teardown(self) -> None:
+        self.world.close()
