@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
 BENCHES: dict[str, tuple[str, str]] = {
     "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
+    "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
     "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency through the router, status queries, codec"),
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
 }

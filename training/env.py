@@ -21,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 
 from racecav.common.config import EnvConfig
+from racecav.common.vehicle import throttle_from_action
 
 REVERSAL_PENALTY = -2.0
 THROTTLE_REWARD_GAIN = 5.0
@@ -70,9 +71,83 @@ def make_world(settings: EnvConfig, n_envs: int = 1, seed: int | None = None, dr
                          seed=seed)
     if n_envs != 1:
         raise ValueError("backend: the bullet backend runs one world per env")
-    from racecav.services.sim.bullet_world import BulletWorld
+    return BulletBackend(settings, driver=driver, seed=seed)
 
-    return BulletWorld.for_env(settings, driver=driver, seed=seed)
+
+class _PolicyTraffic:
+    """A policy callable as a BulletWorld traffic driver (it observes the cars' scans)."""
+
+    needs_lidar = True
+
+    def __init__(self, policy):
+        self.policy = policy
+
+    def reset(self, world, car, n, rng) -> None:
+        pass
+
+    def act(self, obs) -> np.ndarray:
+        return np.asarray(self.policy(obs.scans), dtype=np.float64).reshape(-1, 2)
+
+
+class BulletBackend:
+    """The PyBullet world (services/sim/bullet_world.py) behind the fast world's step API
+    (``seed``, ``reset``, ``step -> obs, (T, a_delta), collided, info``, ``agent_state``), so
+    the env treats both backends alike."""
+
+    def __init__(self, settings: EnvConfig, driver=None, seed: int | None = None):
+        from racecav.common.vehicle import load_car
+        from racecav.services.sim.bullet_world import BulletWorld
+
+        car = load_car(settings.car)
+        if settings.control_period_s is not None:
+            car = car.model_copy(update={"control_period_s": settings.control_period_s})
+        if settings.world != "racetrack":
+            raise ValueError(f"world: the overtaking env runs on the racetrack (got {settings.world!r})")
+        traffic = None
+        if driver is not None and not isinstance(driver, str):
+            traffic = driver if hasattr(driver, "act") else _PolicyTraffic(driver)
+        elif isinstance(driver, str) and driver not in ("centerline", "pure_pursuit"):
+            raise ValueError(f"driver: unknown traffic driver {driver!r}")
+        self.bw = BulletWorld("racetrack", car=car, traffic_driver=traffic,
+                              heading=settings.heading, n_obstacles=settings.n_obstacles,
+                              seed=seed or 0)
+        self.car, self.spec = car, self.bw.spec
+        self.control_period = car.control_period_s
+        scale = settings.agent_speed_scale
+        self.agent_speed_scale = (1.0 if settings.n_obstacles == 0 else car.agent_speed_scale) \
+            if scale is None else scale
+        self._seed = seed
+
+    def seed(self, seed: int | None) -> None:
+        self._seed = seed
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
+        if seed is not None:
+            self._seed = seed
+        obs = self.bw.reset(seed=self._seed, options=options)
+        self._seed = None if self._seed is None else self._seed + 1
+        self.bw.cars[0].speed_scale = self.agent_speed_scale  # the racing stage runs at 1.0
+        return obs
+
+    def step(self, actions):
+        a = np.asarray(actions, dtype=np.float64).reshape(1, 2)
+        obs, _ri, collided, info = self.bw.step(a)
+        throttle = throttle_from_action(a[:, 0])
+        who = info["contact_with"]
+        car = int(who[3:]) if who.startswith("car") else -1
+        return obs, (throttle, np.clip(a[:, 1], -1.0, 1.0)), collided, {
+            "wall": np.array([who in ("wall", "ground", "rollover")]), "car": np.array([car])}
+
+    def set_state(self, env: int = 0, car: int = 0, *, x=0.0, y=0.0, yaw=0.0, v=0.0, w=None,
+                  delta=0.0) -> None:
+        self.bw.set_state(x, y, yaw, v=v, steer=delta, i=car)
+
+    @property
+    def agent_state(self) -> np.ndarray:
+        return self.bw.agent_state()[None, :4]
+
+    def close(self) -> None:
+        self.bw.close()
 
 
 class OvertakeEnv(gym.Env):
