@@ -1,0 +1,123 @@
+"""End to end over Zenoh: the sim service plays the car for a scripted controller process."""
+
+import json
+import threading
+import time
+
+import pytest
+
+from racecav.common import keys, procs
+from racecav.common.client import get_status, live_services, query_message
+from racecav.common.codec import decode
+from racecav.common.messages import VehicleState
+
+EMPTY_CROSSING = """
+name = "empty-crossing"
+world = "intersection"
+duration_s = 30.0
+[ego]
+x = -6.0
+y = 0.0
+yaw_deg = 0.0
+speed = 0.0
+[success]
+min_progress_m = 1.0
+"""
+
+
+class States:
+    """Collects the sim's VehicleState messages."""
+
+    def __init__(self, session, car="car0"):
+        self.items: list[VehicleState] = []
+        self._lock = threading.Lock()
+        self.sub = session.declare_subscriber(keys.topic(car, keys.STATE), self._on)
+
+    def _on(self, sample):
+        with self._lock:
+            self.items.append(decode(sample.payload.to_bytes(), VehicleState))
+
+    def snapshot(self) -> list[VehicleState]:
+        with self._lock:
+            return list(self.items)
+
+    def wait(self, pred, timeout: float) -> list[VehicleState]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            items = self.snapshot()
+            if pred(items):
+                return items
+            time.sleep(0.05)
+        raise TimeoutError(f"condition not met; last state {self.snapshot()[-1:]}")
+
+
+def test_scripted_controller_drives_the_sim_car(spawn, session, tmp_path):
+    scenario = tmp_path / "empty.toml"
+    scenario.write_text(EMPTY_CROSSING)
+    sim = spawn("sim", "--scenario", str(scenario))
+    procs.wait_alive(session, "car0", "sim", proc=sim)
+    states = States(session)
+    # 1.5 s straight, 0.8 s steering fully left, then silence: the watchdog must brake the car
+    ctl = spawn("scripted", "--program", "0.7,0.0,15;0.7,1.0,8", "--then", "stop")
+    procs.wait_alive(session, "car0", "scripted", proc=ctl)
+    assert {"sim", "scripted"} <= set(live_services(session, "car0"))
+    items = states.wait(lambda s: len(s) > 24, timeout=20)
+    x0 = items[0].x
+    straight = [s for s in items[:16]]
+    assert straight[-1].x - x0 > 0.5  # it drove forward ...
+    assert max(abs(s.y) for s in straight) < 0.05 and max(abs(s.yaw) for s in straight) < 0.05  # ... straight
+    turned = items[24]
+    assert turned.yaw > 0.3 and turned.y > 0.05  # positive steering = left (REP-103)
+    assert turned.steering_angle == pytest.approx(0.313, abs=0.01)  # clipped at delta_max
+    assert max(s.vx for s in items[16:25]) > 0.8
+    # program over: no fresh command => brake within the watchdog time
+    items = states.wait(lambda s: len(s) > 45, timeout=20)
+    assert items[-1].vx < 0.1 and not items[-1].collided
+    st = get_status(session, "car0", "sim")
+    assert st.info["watchdog_brakes"] >= 1 and st.info["last_source"] == "scripted"
+    assert st.info["mode"] == "realtime" and not st.info["collided"]
+    # garbage on the command key is counted, the service keeps running
+    session.put(keys.topic("car0", keys.CMD), b"\x00garbage")
+    time.sleep(0.3)
+    st2 = get_status(session, "car0", "sim")
+    assert st2.invalid >= 1 and st2.info["seq"] > st.info["seq"]
+    states.sub.undeclare()
+
+
+def _lockstep_run(spawn, session, seed: int) -> list[tuple]:
+    sim = spawn("sim", "--scenario", "right-to-left", "--mode", "lockstep", "--seed", str(seed))
+    procs.wait_alive(session, "car0", "sim", proc=sim)
+    states = States(session)
+    ctl = spawn("scripted", "--program", "0.8,0.3,8;1.0,-0.6,8;0.5,0.0,100", "--compute-ms", "13")
+    items = states.wait(lambda s: any(x.collided for x in s) or len(s) >= 50, timeout=60)
+    procs.stop(ctl)
+    procs.stop(sim)
+    states.sub.undeclare()
+    st = [(s.seq, s.stamp_ns, s.x, s.y, s.yaw, s.vx, s.collided) for s in items]
+    return st[: min(len(st), 50)]
+
+
+def test_lockstep_runs_are_reproducible(spawn, session):
+    a = _lockstep_run(spawn, session, seed=3)
+    b = _lockstep_run(spawn, session, seed=3)
+    assert len(a) >= 20
+    assert a == b
+    # stamps are sim time: one control period apart
+    assert a[5][1] - a[4][1] == 100_000_000
+
+
+def test_reset_and_scenario_queryables(spawn, session, tmp_path):
+    sim = spawn("sim", "--scenario", "head-to-head", "--mode", "lockstep")
+    procs.wait_alive(session, "car0", "sim", proc=sim)
+    r = query_message(session, "car0", "sim", "reset", {"seed": 9})
+    assert r["episode"] == 1 and r["seed"] == 9
+    r = query_message(session, "car0", "sim", "scenario", {"name": "left-to-right"})
+    assert r["scenario"] == "left-to-right" and r["episode"] == 2
+    assert get_status(session, "car0", "sim").info["scenario"] == "left-to-right"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(EMPTY_CROSSING.replace("duration_s = 30.0", "duration_s = -1"))
+    with pytest.raises(RuntimeError, match="duration_s"):
+        query_message(session, "car0", "sim", "scenario", {"name": str(bad)})
+    with pytest.raises(RuntimeError, match="reset.seed"):
+        query_message(session, "car0", "sim", "reset", {"seed": "x"})
+    assert get_status(session, "car0", "sim").info["scenario"] == "left-to-right"
