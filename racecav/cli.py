@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "state": ("racecav.common.state", "list live services and their status (any Zenoh client can do this)"),
     "echo": ("racecav.common.echo", "print decoded messages of a key, like `ros2 topic echo`"),
     "bench": ("racecav.common.bench", "benchmarks: results go to docs/benchmarks.md"),
+    "demo": ("racecav.evaluation.demo", "the README's main command"),
     "sensor": ("racecav.services.sensor.service", "real lidar: RPLIDAR S2 driver publishing 170-ray Scans"),
     "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),
     "emulate": ("racecav.services.emulate", "device emulators on a pty: rplidar | vesc"),
@@ -27,7 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
 BENCHES: dict[str, tuple[str, str]] = {
-    "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
+    "lidar": ("racecav.services.sensor.bench", "RPLIDAR dense decoding and preprocessing cost, live driver CPU over a pty"),
+    "vesc": ("racecav.services.actuator.bench", "DriveCommand-to-VESC latency and watchdog reaction, timed at the emulator"),
     "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
     "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency through the router, status queries, codec"),
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),

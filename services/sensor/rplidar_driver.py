@@ -257,6 +257,11 @@ class RplidarDriver:
         last_data = time.monotonic()
         while not self.stop_event.is_set():
             n = self._ser.in_waiting
+            if n < 4 * rp.CAPSULE_LEN:
+                # Let a few capsules accumulate: one read per ~4 ms instead of one per capsule
+                # (about 3x less CPU at 800 capsules/s for at most 4 ms more latency).
+                time.sleep(0.004)
+                n = self._ser.in_waiting
             chunk = self._ser.read(n if n else 1)  # blocks up to the port timeout when idle
             now = time.monotonic()
             if chunk:
