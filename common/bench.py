@@ -1,0 +1,80 @@
+"""``racecav bench NAME``: benchmark runner and the writer of docs/benchmarks.md.
+
+Every benchmark reports medians and p99 and rewrites its own section of docs/benchmarks.md
+(between ``<!-- bench:NAME -->`` markers), with the command that produced it, so the document only
+ever holds numbers a command measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import importlib
+import json
+import os
+import platform
+import re
+from pathlib import Path
+
+import numpy as np
+
+DOC = Path("docs/benchmarks.md")
+HEADER = """# Benchmarks
+
+Every section below is written by the command it names, on the machine it names; nothing here is
+typed by hand. Run-to-run noise on the 2-core reference machine is about +-20 %: compare ratios
+measured in one run. Regenerate a section with its command (from the repository root).
+"""
+
+
+def summarize(samples, scale: float = 1.0) -> dict:
+    """Median, p99, mean, min, max and count of ``samples`` multiplied by ``scale``."""
+    a = np.asarray(samples, dtype=float) * scale
+    if a.size == 0:
+        return {"n": 0}
+    return {"n": int(a.size), "median": float(np.median(a)), "p99": float(np.percentile(a, 99)),
+            "mean": float(a.mean()), "min": float(a.min()), "max": float(a.max())}
+
+
+def machine() -> str:
+    return f"{platform.node() or 'host'}: {os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}"
+
+
+def write_section(name: str, command: str, markdown: str, doc: Path = DOC) -> Path:
+    """Replace (or append) the section ``name`` of docs/benchmarks.md."""
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    text = doc.read_text() if doc.exists() else HEADER
+    stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    body = (f"<!-- bench:{name} -->\n## {name}\n\nCommand: `{command}`  \n"
+            f"Measured {stamp} on {machine()}.\n\n{markdown.strip()}\n<!-- /bench:{name} -->")
+    pattern = re.compile(rf"<!-- bench:{re.escape(name)} -->.*?<!-- /bench:{re.escape(name)} -->", re.S)
+    text = pattern.sub(lambda _m: body, text) if pattern.search(text) else text.rstrip() + "\n\n" + body + "\n"
+    doc.write_text(text)
+    return doc
+
+
+def table(rows: list[list], header: list[str]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def dump_json(path: str | None, data: dict) -> None:
+    if path:
+        Path(path).write_text(json.dumps(data, indent=2))
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from racecav.cli import BENCHES
+
+    sub = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
+    for name, (module, help_) in BENCHES.items():
+        q = sub.add_parser(name, help=help_, description=help_)
+        q.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+        q.add_argument("--no-doc", action="store_true", help="do not rewrite docs/benchmarks.md")
+        q.set_defaults(_bench_module=module)
+        importlib.import_module(module).add_arguments(q)
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    return int(importlib.import_module(args._bench_module).run(args, cfg) or 0)

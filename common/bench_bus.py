@@ -1,0 +1,143 @@
+"""``racecav bench bus``: what the bus costs a control loop.
+
+Three processes, as on the car: a router, a publisher service sending a 170-ray Scan at 60 Hz
+(stamped with the system-wide monotonic clock just before ``put``), and this process receiving
+it as a service would (decode + validate in the callback). One-way latency = arrival - stamp.
+Then status-query latency against the publisher service, and the codec alone in-process.
+Targets (issue 2): one-way median <= 0.3 ms, p99 <= 1 ms; codec encode+decode <= 20 us median.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from racecav.common import keys
+from racecav.common.bench import dump_json, summarize, table, write_section
+from racecav.common.config import Config
+from racecav.common.messages import Scan
+
+N_RAYS = 170
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--samples", type=int, default=1200, help="scans to time (at --rate)")
+    p.add_argument("--rate", type=float, default=60.0, help="scan rate (Hz)")
+    p.add_argument("--queries", type=int, default=200, help="status queries to time")
+
+
+def sample_scan(seq: int = 0, stamp_ns: int = 0) -> Scan:
+    """A realistic 170-ray frontal scan (the policy's observation layout)."""
+    rng = np.random.default_rng(seq)
+    return Scan(stamp_ns=stamp_ns, seq=seq, source="sim", angle_min=-np.pi / 4, angle_max=np.pi / 4,
+                angle_increment=(np.pi / 2) / (N_RAYS - 1), scan_time=1 / 60, range_min=0.05, range_max=12.0,
+                ranges=rng.uniform(0.3, 12.0, N_RAYS).astype(np.float32))
+
+
+def bench_codec(n: int = 5000) -> dict:
+    from racecav.common.codec import decode, encode
+
+    msg = sample_scan(1, 1)
+    for _ in range(200):
+        decode(encode(msg), Scan)
+    t = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter_ns()
+        decode(encode(msg), Scan)
+        t[i] = time.perf_counter_ns() - t0
+    return summarize(t, 1e-3)  # us
+
+
+def publisher_main(rate: float, count: int) -> int:
+    """The publisher process: a Service that publishes ``count`` scans at ``rate`` Hz."""
+    from racecav.common.bus import Service
+    from racecav.common.config import load_config
+
+    svc = Service(load_config(), "benchpub")
+    svc.open()
+    try:
+        pub = svc.publisher(svc.topic(keys.SCAN))
+        time.sleep(1.0)  # let the subscriber's interest reach us through the router
+        period = 1.0 / rate
+        base = sample_scan(0)
+        next_t = time.monotonic()
+        for seq in range(count):
+            next_t += period
+            time.sleep(max(0.0, next_t - time.monotonic()))
+            base.seq, base.stamp_ns = seq, time.monotonic_ns()
+            pub.put(base)
+        svc.stop_event.wait(3600)  # keep answering status queries until told to stop
+    finally:
+        svc.close()
+    return 0
+
+
+def run(args: argparse.Namespace, cfg: Config) -> int:
+    import zenoh
+
+    from racecav.common import procs
+    from racecav.common.client import get_status, open_session
+    from racecav.common.codec import decode
+
+    codec = bench_codec()
+    warmup = 60
+    lat: list[int] = []
+    done = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        msg = decode(sample.payload.to_bytes(), Scan)
+        now = time.monotonic_ns()
+        if msg.seq >= warmup:
+            lat.append(now - msg.stamp_ns)
+        if msg.seq == warmup + args.samples - 1:
+            done.set()
+
+    with procs.router() as endpoint:
+        env = procs.bus_env(endpoint)
+        bus = cfg.bus.model_copy(update={"connect": [endpoint]})
+        with open_session(cfg.model_copy(update={"bus": bus})) as session:
+            sub = session.declare_subscriber(keys.topic(bus.car, keys.SCAN), on_sample)
+            pub_proc = subprocess.Popen([sys.executable, "-m", "racecav.common.bench_bus", "--publisher",
+                                         str(args.rate), str(warmup + args.samples)], env=env, start_new_session=True)
+            try:
+                procs.wait_alive(session, bus.car, "benchpub", proc=pub_proc)
+                total_s = (warmup + args.samples) / args.rate + 10
+                if not done.wait(total_s):
+                    print(f"warning: received {len(lat)} of {args.samples} timed scans", file=sys.stderr)
+                q = []
+                for _ in range(args.queries):
+                    t0 = time.perf_counter_ns()
+                    get_status(session, bus.car, "benchpub")
+                    q.append(time.perf_counter_ns() - t0)
+                    time.sleep(0.01)
+            finally:
+                sub.undeclare()
+                procs.stop(pub_proc)
+
+    one_way = summarize(lat, 1e-3)
+    query = summarize(q, 1e-3)
+    lost = args.samples - len(lat)
+    results = {"one_way_us": one_way, "status_query_us": query, "codec_us": codec,
+               "scans_sent": args.samples, "scans_lost": lost, "rate_hz": args.rate,
+               "targets": {"one_way_median_us": 300, "one_way_p99_us": 1000, "codec_median_us": 20}}
+    rows = [["scan one-way, pub -> router -> sub (170 rays, %g Hz)" % args.rate, f"{one_way['median']:.0f}", f"{one_way['p99']:.0f}", "<= 300 / <= 1000"],
+            ["status query round trip (through the router)", f"{query['median']:.0f}", f"{query['p99']:.0f}", ""],
+            ["codec encode + decode of a Scan (in-process)", f"{codec['median']:.1f}", f"{codec['p99']:.1f}", "<= 20 median"]]
+    md = table(rows, ["what", "median (us)", "p99 (us)", "target (us)"])
+    md += f"\n\n{args.samples} scans timed after {warmup} warm-up, {lost} lost; {args.queries} status queries at 100 Hz."
+    print(md)
+    dump_json(args.json, results)
+    if not args.no_doc:
+        write_section("bus", "racecav bench bus", md)
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--publisher":
+        sys.exit(publisher_main(float(sys.argv[2]), int(sys.argv[3])))
+    sys.exit("usage: python -m racecav.common.bench_bus --publisher RATE COUNT")

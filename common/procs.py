@@ -1,0 +1,101 @@
+"""Starting and stopping racecav processes: used by the benchmarks, the evaluation harness, the
+demo and the tests, so that all of them run the real services the same way."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def racecav_cmd(*args: str) -> list[str]:
+    """Command line running ``racecav ARGS`` with this interpreter (works without the script on PATH)."""
+    return [sys.executable, "-m", "racecav.cli", *args]
+
+
+def bus_env(endpoint: str, car: str = "car0", extra: dict[str, str] | None = None) -> dict[str, str]:
+    """Environment that points a racecav process at ``endpoint``."""
+    env = dict(os.environ)
+    env["RACECAV_BUS__CONNECT"] = f'["{endpoint}"]'
+    env["RACECAV_BUS__CAR"] = car
+    env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra or {})
+    return env
+
+
+def start(args: list[str], env: dict[str, str], log_path=None) -> subprocess.Popen:
+    """Start ``racecav ARGS`` in its own process group; output to ``log_path`` or inherited."""
+    out = open(log_path, "ab") if log_path else None
+    return subprocess.Popen(racecav_cmd(*args), env=env, stdout=out, stderr=subprocess.STDOUT if out else None,
+                            start_new_session=True)
+
+
+def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
+    """SIGTERM (clean shutdown), then SIGKILL if it does not exit in time."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc.returncode
+
+
+def wait_alive(session, car: str, service: str, timeout: float = 30.0, proc: subprocess.Popen | None = None) -> None:
+    """Block until ``service`` holds its liveliness token; raise if it dies or times out."""
+    from racecav.common.client import live_services
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"{service} exited with code {proc.returncode} before joining the bus")
+        if service in live_services(session, car, timeout=0.5):
+            return
+        time.sleep(0.1)
+    raise TimeoutError(f"{service} not alive on car {car} after {timeout} s")
+
+
+@contextmanager
+def router(port: int | None = None, log_path=None) -> Iterator[str]:
+    """Run ``racecav router`` on a free loopback port; yields its endpoint."""
+    port = port or free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    env = bus_env(endpoint, extra={"RACECAV_ROUTER__LISTEN": f'["{endpoint}"]'})
+    proc = start(["router"], env, log_path)
+    try:
+        deadline = time.monotonic() + 20
+        while True:  # the router is up when its port accepts connections
+            if proc.poll() is not None:
+                raise RuntimeError(f"router exited with code {proc.returncode}")
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError("router did not start") from None
+                time.sleep(0.05)
+        # ...and it is on the bus when its own liveliness token is visible to a client.
+        from racecav.common.client import open_session
+        from racecav.common.config import load_config
+
+        with open_session(load_config(environ={"RACECAV_BUS__CONNECT": f'["{endpoint}"]'})) as s:
+            wait_alive(s, "car0", "router", timeout=20, proc=proc)
+        yield endpoint
+    finally:
+        stop(proc)
