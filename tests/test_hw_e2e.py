@@ -89,3 +89,34 @@ def test_emulated_vesc_neutral_when_controller_dies(spawn, session, tmp_path):
     assert stop["t"] - t_last <= 0.125 and last_value > 0
     servo = next(r for r in recs if r["name"] == "SET_SERVO_POS" and r["t"] >= stop["t"])
     assert servo["value"] == pytest.approx(0.530, abs=1e-3)
+
+
+@pytest.mark.parametrize("timeout_s", [0.25])
+def test_whole_chain_without_hardware(spawn, session, tmp_path, timeout_s):
+    """emulate rplidar -> sensor -> controller (scripted, as the policy) -> actuator -> emulate vesc.
+
+    The controller answers each 10 Hz scan, so commands come every ~100 ms: the watchdog must be
+    longer than that (here 250 ms) or it brakes between commands (see docs/hardware.md).
+    """
+    lidar, vesc, log = tmp_path / "rplidar", tmp_path / "vesc", tmp_path / "vesc.jsonl"
+    spawn("emulate", "rplidar", "--link", str(lidar), "--reset-s", "0.1")
+    spawn("emulate", "vesc", "--link", str(vesc), "--log", str(log), "--quiet")
+    assert wait_until(lambda: lidar.exists() and vesc.exists())
+    act = spawn("actuator", "--port", str(vesc), env={"RACECAV_ACTUATOR__TIMEOUT_S": str(timeout_s)})
+    procs.wait_alive(session, CAR, "actuator", proc=act)
+    ctl = spawn("scripted", "--program", "0.6,0.1,20", "--then", "stop", "--source", "policy")
+    procs.wait_alive(session, CAR, "scripted", proc=ctl)
+    sen = spawn("sensor", "--port", str(lidar), env={"RACECAV_SENSOR__RESET_WAIT_S": "0.2",
+                                                     "RACECAV_SENSOR__SPINUP_S": "0.05"})
+    assert wait_until(lambda: get_status(session, CAR, "scripted").info.get("answered", 0) >= 20, timeout=20)
+    time.sleep(timeout_s + 0.3)
+    recs = [json.loads(ln) for ln in log.read_text().splitlines()]
+    drive = [r for r in recs if r["name"] == "SET_RPM" and r["value"] > 0]
+    assert len(drive) >= 20
+    t0, t1 = drive[0]["t"], drive[-1]["t"]
+    brakes_while_driving = [r for r in recs if r["name"] == "SET_CURRENT_BRAKE" and t0 < r["t"] < t1]
+    assert not brakes_while_driving
+    stop = next(r for r in recs if r["name"] == "SET_CURRENT_BRAKE" and r["t"] > t1)
+    assert stop["t"] - t1 <= timeout_s + 0.03
+    st = get_status(session, CAR, "actuator")
+    assert st.info["accepted"] >= 20 and st.info["driving"] == "timeout"
