@@ -149,3 +149,34 @@ def test_reset_with_same_seed_replays_and_schedule_splits_steps():
         d = w.agent_state()
     assert np.array_equal(a, b) and np.array_equal(a, d)
     assert not np.allclose(a, c, atol=1e-4)
+
+
+def test_every_wall_segment_is_solid():
+    """Each wall segment of the racetrack stops a ray crossing its middle (none is missing)."""
+    with BulletWorld("racetrack") as w:
+        w.reset(seed=0)
+        walls = w.world.walls.astype(np.float64)
+        mid = (walls[:, :2] + walls[:, 2:]) / 2
+        d = walls[:, 2:] - walls[:, :2]
+        n = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1)[:, None]
+        z = w.car.lidar_mount.z
+        start = np.c_[mid + 0.3 * n, np.full(len(mid), z)]
+        end = np.c_[mid - 0.3 * n, np.full(len(mid), z)]
+        res = w.bc.rayTestBatch(start.tolist(), end.tolist())
+        hit_walls = [r[0] in w.wall_bodies for r in res]
+        assert all(hit_walls), np.flatnonzero(~np.array(hit_walls))
+
+
+def test_progress_counts_over_a_lap_and_success_needs_it():
+    with BulletWorld("racetrack", n_obstacles=0) as w:
+        w.reset(seed=0, options={"agent_pose": tuple(w.world.centerline_pose(0.0))})
+        # teleport the car along the centerline in 1 m hops: progress accumulates past one lap
+        hops = np.arange(1.0, w.world.length + 5.0, 1.0)
+        for s in hops:
+            x, y, yaw = w.world.centerline_pose(s)
+            w.bc.resetBasePositionAndOrientation(w.agent.body, [x, y, w.car.com_height],
+                                                 w.bc.getQuaternionFromEuler([0, 0, yaw]))
+            w._update_progress()
+        assert hops[-1] > w.world.length
+        assert w.progress() == pytest.approx(hops[-1], abs=0.05)
+        assert w.success()  # no contact and >= min_progress_m

@@ -36,6 +36,7 @@ GRAVITY = 9.81
 RAY_GROUP = 1          # collision group of everything a lidar sees (cars, walls)
 GROUND_GROUP = 2       # the ground: collides with cars, invisible to the (planar) lidar
 CONTACT_DISTANCE = 0.0 # m: a contact point at or below this distance is a touch
+WALLS_PER_BODY = 16    # PyBullet's limit of child shapes per createCollisionShapeArray
 TILT_LIMIT = 1.0       # rad of roll or pitch that counts as a crash (the car fell over)
 
 
@@ -170,13 +171,13 @@ class BulletWorld:
         self.ground = bc.createMultiBody(0, ground)
         bc.changeDynamics(self.ground, -1, lateralFriction=1.0)
         bc.setCollisionFilterGroupMask(self.ground, -1, GROUND_GROUP, 0xFFFF)
-        self.walls_body = self._build_walls()
+        self.wall_bodies = self._build_walls()
         self.cars: list[_Car] = []
 
-    def _build_walls(self) -> int:
+    def _build_walls(self) -> set[int]:
+        """Static bodies holding one box per wall segment (compound shapes of at most
+        WALLS_PER_BODY boxes: PyBullet silently drops the children beyond 16 per shape)."""
         w, bc = self.world, self.bc
-        if len(w.walls) == 0:
-            return -1
         shapes = []
         for x0, y0, x1, y1 in w.walls.astype(np.float64):
             length = math.hypot(x1 - x0, y1 - y0)
@@ -185,12 +186,16 @@ class BulletWorld:
             half = [length / 2 + w.wall_thickness / 2, w.wall_thickness / 2, w.wall_height / 2]
             shapes.append((half, [(x0 + x1) / 2, (y0 + y1) / 2, w.wall_height / 2],
                            bc.getQuaternionFromEuler([0, 0, yaw])))
-        col = bc.createCollisionShapeArray(
-            shapeTypes=[p.GEOM_BOX] * len(shapes), halfExtents=[s[0] for s in shapes],
-            collisionFramePositions=[s[1] for s in shapes], collisionFrameOrientations=[s[2] for s in shapes])
-        body = bc.createMultiBody(0, col)
-        bc.setCollisionFilterGroupMask(body, -1, RAY_GROUP, 0xFFFF)
-        return body
+        bodies = set()
+        for k in range(0, len(shapes), WALLS_PER_BODY):
+            chunk = shapes[k:k + WALLS_PER_BODY]
+            col = bc.createCollisionShapeArray(
+                shapeTypes=[p.GEOM_BOX] * len(chunk), halfExtents=[s[0] for s in chunk],
+                collisionFramePositions=[s[1] for s in chunk], collisionFrameOrientations=[s[2] for s in chunk])
+            body = bc.createMultiBody(0, col)
+            bc.setCollisionFilterGroupMask(body, -1, RAY_GROUP, 0xFFFF)
+            bodies.add(body)
+        return bodies
 
     def _add_car(self, x: float, y: float, yaw: float, kind: str, speed_scale: float,
                  kinematic: bool = False) -> _Car:
@@ -271,7 +276,8 @@ class BulletWorld:
         if v0 > 0:
             self._set_speed(0, v0)
         self.start_pose = self.agent_state()[:3].copy()
-        self.start_s = self.world.progress(*self.start_pose[:2]) if self.world.centerline is not None else 0.0
+        self._last_s = self.world.progress(*self.start_pose[:2]) if self.world.centerline is not None else 0.0
+        self._progress = 0.0
         return self._observe()[None, :]
 
     def _settle(self) -> None:
@@ -384,6 +390,7 @@ class BulletWorld:
     def end_period(self) -> tuple[np.ndarray, dict, np.ndarray, dict]:
         """End of a control period: lidar and the step results (see :meth:`step`)."""
         self.steps += 1
+        self._update_progress()
         obs = self._observe()
         reward_inputs = {"throttle": np.array([self.throttle[0]]), "a_steer": np.array([self.action[1]]),
                          "a_steer_prev": np.array([self.prev_action[1]])}
@@ -425,7 +432,7 @@ class BulletWorld:
                     return
                 continue
             self.collided = True
-            self.contact_with = "wall" if other == self.walls_body else f"car{self._car_index(other)}"
+            self.contact_with = "wall" if other in self.wall_bodies else f"car{self._car_index(other)}"
             return
         pos, orn = bc.getBasePositionAndOrientation(self.agent.body)
         roll, pitch, _ = bc.getEulerFromQuaternion(orn)
@@ -525,15 +532,26 @@ class BulletWorld:
         self._set_speed(i, v) if v > 0 else self.bc.resetBaseVelocity(c.body, [0, 0, 0], [0, 0, 0])
         if v <= 0:
             self.w[i] = 0.0
+        if i == 0 and self.world.centerline is not None:
+            self._last_s = float(self.world.progress(x, y))
         self._observe()
 
-    def progress(self) -> float:
-        """Ego progress (m): along the centerline in its driving direction (loop worlds), else
-        along its initial heading."""
+    def _update_progress(self) -> None:
+        """Accumulate centerline progress step by step (it keeps counting over many laps)."""
+        if self.world.centerline is None:
+            return
         x, y = self.agent_state()[:2]
+        s = float(self.world.progress(x, y))
+        L = self.world.length
+        self._progress += (s - self._last_s + L / 2) % L - L / 2
+        self._last_s = s
+
+    def progress(self) -> float:
+        """Ego progress (m): along the centerline in its driving direction, accumulated over
+        laps (loop worlds), else the displacement along its initial heading."""
         if self.world.centerline is not None:
-            ds = (self.world.progress(x, y) - self.start_s + self.world.length / 2) % self.world.length - self.world.length / 2
-            return float(-ds if self.heading == "reversed" else ds)
+            return float(-self._progress if self.heading == "reversed" else self._progress)
+        x, y = self.agent_state()[:2]
         x0, y0, yaw0 = self.start_pose
         return float((x - x0) * math.cos(yaw0) + (y - y0) * math.sin(yaw0))
 
