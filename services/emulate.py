@@ -16,6 +16,7 @@ import importlib
 DEVICES = {
     "rplidar": ("racecav.services.sensor.emulator", "RPLIDAR S2 (info/health/conf, standard/express/dense scans, faults)"),
     "vesc": ("racecav.services.actuator.emulator", "VESC (records every frame, answers GET_VALUES, motor model)"),
+    "record-scans": ("racecav.services.sensor.record_scans", "save Scans from the bus (e.g. the simulator's) for `rplidar --replay`"),
 }
 
 
