@@ -106,7 +106,6 @@ class RplidarDriver:
                         self.stats.restarts += 1
                         self._set_state("restarting", f"device error: {e}")
             except (serial.SerialException, OSError) as e:
-                # TypeError/ValueError: pyserial raises these from a closed fd mid-read.
                 self.stats.disconnects += 1
                 self._set_state("disconnected", f"port {self.port} failed: {e}")
             finally:
