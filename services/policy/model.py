@@ -1,0 +1,183 @@
+"""The shipped policy format and its plain-numpy inference (no torch or SB3 at import time).
+
+A policy is two files side by side:
+
+- ``<name>.npz``: float32 arrays ``w0 (170, 64)``, ``b0 (64,)``, ``w1 (64, 64)``, ``b1 (64,)``,
+  ``w2 (64, 2)``, ``b2 (2,)`` (the actor of SB3's MlpPolicy, net_arch [64, 64], tanh: action
+  mean = w2^T tanh(w1^T tanh(w0^T x + b0) + b1) + b2), ``log_std (2,)`` (kept for reference; the
+  deterministic action is the mean), and, when training normalised observations (SB3
+  VecNormalize), ``obs_mean (170,)``, ``obs_var (170,)``, ``obs_clip ()``, ``obs_eps ()``.
+- ``<name>.json``: metadata (training steps, seed, settings, git commit, evaluation results ...).
+
+Observation contract: the input is the sanitised scan (``racecav.common.lidar.sanitize``: 170
+finite ranges in [range_min, range_max]); normalisation, if any, is part of the policy and is
+applied here: ``x = clip((obs - obs_mean) / sqrt(obs_var + obs_eps), -obs_clip, obs_clip)``.
+The action is the Gaussian mean clipped to [-1, 1] (what SB3's ``predict(deterministic=True)``
+returns), ``[a_T, a_delta]``.
+
+``load_policy("racing" | "default" | "reversed" | PATH)``; ``export_policy(sb3_model, path,
+metadata, obs_rms=None)`` writes both files from a trained SB3 PPO model.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+"""Shipped policies: ``MODELS_DIR/<name>.npz`` + ``.json`` (+ the SB3 ``.zip``)."""
+SHIPPED = ("racing", "default", "reversed")
+_LAYERS = ("w0", "b0", "w1", "b1", "w2", "b2")
+
+
+class NumpyPolicy:
+    """The deterministic actor as float32 numpy: ``policy(obs) -> action``.
+
+    :param arrays: the npz contents (see the module docstring).
+    :param metadata: the JSON metadata (free-form dict).
+    """
+
+    def __init__(self, arrays: dict[str, np.ndarray], metadata: dict[str, Any] | None = None):
+        missing = [k for k in _LAYERS if k not in arrays]
+        if missing:
+            raise ValueError(f"policy weights: missing arrays {missing}")
+        self.w0, self.b0, self.w1, self.b1, self.w2, self.b2 = (
+            np.ascontiguousarray(arrays[k], dtype=np.float32) for k in _LAYERS)
+        for i, (w, b) in enumerate(((self.w0, self.b0), (self.w1, self.b1), (self.w2, self.b2))):
+            if w.ndim != 2 or b.shape != (w.shape[1],):
+                raise ValueError(f"policy weights: w{i} {w.shape} / b{i} {b.shape} do not match")
+        if self.w1.shape[0] != self.w0.shape[1] or self.w2.shape[0] != self.w1.shape[1]:
+            raise ValueError("policy weights: layer sizes do not chain")
+        self.log_std = np.asarray(arrays.get("log_std", np.zeros(self.w2.shape[1])), np.float32)
+        self.obs_dim, self.act_dim = self.w0.shape[0], self.w2.shape[1]
+        self.normalize = "obs_mean" in arrays
+        if self.normalize:
+            mean = np.asarray(arrays["obs_mean"], np.float64)
+            var = np.asarray(arrays["obs_var"], np.float64)
+            if mean.shape != (self.obs_dim,) or var.shape != (self.obs_dim,):
+                raise ValueError(f"policy weights: obs_mean {mean.shape} / obs_var {var.shape} "
+                                 f"must be ({self.obs_dim},)")
+            self.obs_mean = mean.astype(np.float32)
+            self.obs_eps = float(arrays.get("obs_eps", 1e-8))
+            # Multiply by 1/std rather than divide: same result within float32 rounding.
+            self.obs_inv_std = (1.0 / np.sqrt(var + self.obs_eps)).astype(np.float32)
+            self.obs_var = var.astype(np.float32)
+            self.obs_clip = float(arrays.get("obs_clip", 10.0))
+        self.metadata = dict(metadata or {})
+
+    def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
+        """The observation as the network sees it (float32; identity without normalisation)."""
+        x = np.asarray(obs, dtype=np.float32)
+        if self.normalize:
+            x = np.clip((x - self.obs_mean) * self.obs_inv_std, -self.obs_clip, self.obs_clip)
+        return x
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic action(s).
+
+        :param obs: one observation (170,) or a batch (B, 170): sanitised lidar ranges.
+        :returns: float32 (2,) or (B, 2) in [-1, 1]: [a_T, a_delta].
+        """
+        x = self.normalize_obs(obs)
+        if x.shape[-1] != self.obs_dim:
+            raise ValueError(f"observation: expected last dimension {self.obs_dim}, got {x.shape}")
+        h = np.tanh(x @ self.w0 + self.b0)
+        h = np.tanh(h @ self.w1 + self.b1)
+        a = h @ self.w2 + self.b2
+        return np.clip(a, -1.0, 1.0, out=a)
+
+    act = __call__
+
+    @property
+    def n_params(self) -> int:
+        """Weights and biases of the actor."""
+        return sum(int(getattr(self, k).size) for k in _LAYERS)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The npz contents (as saved)."""
+        out = {k: getattr(self, k) for k in _LAYERS}
+        out["log_std"] = self.log_std
+        if self.normalize:
+            out.update(obs_mean=self.obs_mean, obs_var=self.obs_var,
+                       obs_clip=np.float32(self.obs_clip), obs_eps=np.float32(self.obs_eps))
+        return out
+
+
+def resolve_policy_path(name_or_path: str | Path) -> Path:
+    """The ``.npz`` of a shipped name ("racing", "default", "reversed") or of a path (with or
+    without the ``.npz``/``.json`` suffix)."""
+    s = str(name_or_path)
+    if s in SHIPPED:
+        return MODELS_DIR / f"{s}.npz"
+    p = Path(s)
+    if p.suffix in (".json", ".zip"):
+        p = p.with_suffix(".npz")
+    elif p.suffix != ".npz":
+        p = p.with_name(p.name + ".npz")
+    return p
+
+
+def load_policy(name_or_path: str | Path) -> NumpyPolicy:
+    """Load a shipped policy by name or a policy file by path.
+
+    :param name_or_path: "racing" | "default" | "reversed" | path to ``X.npz`` (``X.json`` is read
+        if present).
+    :raises FileNotFoundError: naming the file that is missing.
+    """
+    path = resolve_policy_path(name_or_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"policy {name_or_path!r}: no weights file {path}")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta_path = path.with_suffix(".json")
+    metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    return NumpyPolicy(arrays, metadata)
+
+
+def policy_arrays_from_sb3(sb3_model) -> dict[str, np.ndarray]:
+    """The actor's weights of an SB3 PPO MlpPolicy (net_arch [64, 64], tanh) as npz arrays."""
+    sd = {k: v.detach().cpu().numpy() for k, v in sb3_model.policy.state_dict().items()}
+    lin = sorted({int(k.split(".")[2]) for k in sd if k.startswith("mlp_extractor.policy_net.")})
+    if len(lin) != 2:
+        raise ValueError(f"export: expected 2 hidden layers in the actor, found {len(lin)}")
+    act_fn = type(sb3_model.policy.mlp_extractor.policy_net[1]).__name__
+    if act_fn != "Tanh":
+        raise ValueError(f"export: the numpy path implements tanh, the model uses {act_fn}")
+    out = {}
+    for i, j in enumerate(lin):
+        out[f"w{i}"] = sd[f"mlp_extractor.policy_net.{j}.weight"].T.astype(np.float32)
+        out[f"b{i}"] = sd[f"mlp_extractor.policy_net.{j}.bias"].astype(np.float32)
+    out["w2"] = sd["action_net.weight"].T.astype(np.float32)
+    out["b2"] = sd["action_net.bias"].astype(np.float32)
+    out["log_std"] = sd["log_std"].astype(np.float32)
+    return out
+
+
+def export_policy(sb3_model, path: str | Path, metadata: dict[str, Any] | None = None,
+                  obs_rms=None, clip_obs: float = 10.0, epsilon: float = 1e-8) -> Path:
+    """Write ``path`` (.npz) and its ``.json`` metadata from an SB3 PPO model.
+
+    :param sb3_model: a trained ``stable_baselines3.PPO`` with MlpPolicy [64, 64] tanh.
+    :param path: target ``.npz`` (the suffix is forced).
+    :param metadata: JSON-serialisable dict stored as ``.json``.
+    :param obs_rms: VecNormalize's ``obs_rms`` (RunningMeanStd) if observations were normalised.
+    :param clip_obs: VecNormalize's ``clip_obs``.
+    :param epsilon: VecNormalize's ``epsilon``.
+    :returns: the ``.npz`` path.
+    """
+    path = Path(path).with_suffix(".npz")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = policy_arrays_from_sb3(sb3_model)
+    meta = dict(metadata or {})
+    if obs_rms is not None:
+        arrays.update(obs_mean=np.asarray(obs_rms.mean, np.float64),
+                      obs_var=np.asarray(obs_rms.var, np.float64),
+                      obs_clip=np.float64(clip_obs), obs_eps=np.float64(epsilon))
+    meta["normalization"] = ({"kind": "VecNormalize obs", "clip_obs": clip_obs, "epsilon": epsilon}
+                             if obs_rms is not None else None)
+    np.savez(path, **arrays)
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
+    return path
