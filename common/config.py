@@ -206,6 +206,79 @@ class EnvConfig(Section):
     """Worlds stepped together by the fast VecEnv."""
 
 
+class PolicyConfig(Section):
+    """The DRL policy controller (``racecav policy``)."""
+
+    model: str = "reversed"
+    """Shipped policy name (reversed, default, racing) or path to a policy .npz."""
+    max_scan_age_s: float = Field(0.25, gt=0)
+    """A scan that arrived longer ago than this (wall clock) gets no command: it is counted as
+    stale. Also the limit on scan stamp age when the scan is stamped with this host's monotonic
+    clock (source "real"); sim stamps are sim time and only the arrival age applies."""
+    car: str = "slash"
+    """Car file: steering limits of the physical steering angle in the command."""
+
+
+class BaselineConfig(Section):
+    """The MPC-APF baseline controller (``racecav baseline``); design in docs/controllers.md."""
+
+    car: str = "slash"
+    """Car file: model parameters, actuator limits and lidar mount."""
+    max_scan_age_s: float = Field(0.25, gt=0)
+    """Scans older than this on arrival (wall clock) get no command and are counted stale."""
+    obstacles: Literal["lidar", "oracle"] = "lidar"
+    """lidar: detect and track obstacles from the scan (evaluation); oracle: ground-truth
+    ObstacleStates from the simulator (diagnosis only)."""
+    ego_state: Literal["auto", "state", "model"] = "auto"
+    """Where ego pose and speed come from: "state" = the state key (sim or odometry), "model" =
+    dead reckoning of the car's own commands through the car model, "auto" = the state key while
+    it is fresh, the model otherwise."""
+    initial_speed: float = Field(1.0, ge=0)
+    """Ego speed (m/s) the dead-reckoning model starts from (scenarios start at 1 m/s)."""
+    max_state_age_s: float = Field(0.3, gt=0)
+    """A VehicleState older than this (wall clock) is not used (auto falls back to the model)."""
+    horizon: int = Field(10, ge=2, le=50)
+    """Prediction steps (paper: 10)."""
+    dt: float = Field(0.15, gt=0)
+    """Prediction step (s): horizon * dt is the look-ahead."""
+    v_ref: float = Field(1.0, ge=0)
+    """Target speed (m/s) of the speed-tracking term."""
+    w_lane: float = Field(1.0, ge=0)
+    """Weight of the lateral offset from the lane reference (1/m^2)."""
+    w_heading: float = Field(1.0, ge=0)
+    """Weight of the heading error to the lane direction (1/rad^2)."""
+    w_speed: float = Field(2.0, ge=0)
+    """Weight of the speed error ((s/m)^2)."""
+    w_obstacle: float = Field(30.0, ge=0)
+    """Peak of one obstacle charge's potential."""
+    obstacle_sigma: float = Field(0.35, gt=0)
+    """Width (m) of an obstacle charge's Gaussian potential, beyond the car's half-width."""
+    obstacle_charges: int = Field(3, ge=1, le=7)
+    """Charges along an obstacle car's length (line charge)."""
+    w_boundary: float = Field(5.0, ge=0)
+    """Peak of one static boundary point's potential."""
+    boundary_sigma: float = Field(0.2, gt=0)
+    """Width (m) of a boundary point's potential, beyond the ego's half-width."""
+    w_throttle: float = Field(0.05, ge=0)
+    """Input effort: throttle."""
+    w_steer: float = Field(0.5, ge=0)
+    """Input effort: steering angle (1/rad^2)."""
+    w_dsteer: float = Field(2.0, ge=0)
+    """Input rate: steering change per step (1/rad^2)."""
+    w_dthrottle: float = Field(0.2, ge=0)
+    """Input rate: throttle change per step."""
+    max_obstacles: int = Field(4, ge=1, le=16)
+    """Tracked obstacles passed to the MPC (nearest first)."""
+    max_boundary_points: int = Field(24, ge=0, le=128)
+    """Static boundary points passed to the MPC (nearest first)."""
+    solver: Literal["sqp", "ipopt"] = "sqp"
+    """sqp: casadi sqpmethod + qrqp (fast); ipopt: interior point (slower, reference)."""
+    max_iter: int = Field(20, ge=1)
+    """Solver iteration limit per control step."""
+    perception_range: float = Field(6.0, gt=0)
+    """Lidar returns farther than this (m) are ignored by the baseline's perception."""
+
+
 class Config(Section):
     """The whole configuration. Sections are added by the services that own them."""
 
@@ -215,6 +288,8 @@ class Config(Section):
     sensor: SensorConfig = SensorConfig()
     actuator: ActuatorConfig = ActuatorConfig()
     sim: SimConfig = SimConfig()
+    policy: PolicyConfig = PolicyConfig()
+    baseline: BaselineConfig = BaselineConfig()
 
     def digest(self) -> str:
         """Short hash of the effective configuration, reported in every ServiceStatus."""
