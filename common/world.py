@@ -336,3 +336,48 @@ def segment_distance(px, py, walls: np.ndarray) -> np.ndarray:
     d = b - a
     t = np.clip(((p - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0, 1)
     return np.sqrt((((a + d * t[..., None]) - p) ** 2).sum(-1)).min(-1)
+
+
+def plot_world(world: World, ax=None, show_centerline: bool = True):
+    """Draw a world's walls (and centerline) on a matplotlib axis; returns the axis."""
+    if ax is None:
+        import matplotlib.pyplot as plt
+
+        _, ax = plt.subplots(figsize=(10, 5))
+    for x0, y0, x1, y1 in world.walls:
+        ax.plot([x0, x1], [y0, y1], "k-", lw=1.5)
+    if show_centerline and world.centerline is not None:
+        cl = np.vstack([world.centerline, world.centerline[:1]])
+        ax.plot(cl[:, 0], cl[:, 1], "b:", lw=1, label="centerline (traffic direction)")
+        ax.annotate("", xy=cl[40], xytext=cl[0], arrowprops=dict(arrowstyle="->", color="b"))
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(world.name)
+    return ax
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m racecav.common.world OUT.png [WORLD...]``: plot worlds (docs/world.md figure)."""
+    import sys
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    args = sys.argv[1:] if argv is None else argv
+    if not args:
+        print("usage: python -m racecav.common.world OUT.png [WORLD ...]")
+        return 2
+    names = args[1:] or ["racetrack", "intersection"]
+    fig, axes = plt.subplots(1, len(names), figsize=(7 * len(names), 5))
+    for ax, name in zip(np.atleast_1d(axes), names):
+        plot_world(load_world(name), ax)
+    fig.tight_layout()
+    fig.savefig(args[0], dpi=90)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
