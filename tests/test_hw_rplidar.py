@@ -11,7 +11,7 @@ import pytest
 
 from racecav.common.lidar import LidarSpec, ray_angles
 from racecav.services.sensor import rplidar_protocol as rp
-from racecav.services.sensor.emulator import RplidarEmulator, WallScene, default_walls
+from racecav.services.sensor.emulator import EXPRESS_MODE, S2_MODES, RplidarEmulator, WallScene, default_walls
 from racecav.services.sensor.preprocess import PreprocessParams, cut_angle_deg, preprocess, revolution_to_scan
 from racecav.services.sensor.rplidar_driver import RplidarDriver
 
@@ -261,7 +261,7 @@ def test_handshake_over_pty(lidar):
     drv, emu = run.drv, run.emu
     assert drv.info.model_major == 7 and drv.info.serial == "C0FFEE00112233445566778899AABBCC"
     assert drv.health == rp.Health(0, 0)
-    assert (drv.mode_count, drv.typical_mode, drv.mode, drv.mode_name) == (3, 1, 1, "DenseBoost")
+    assert (drv.mode_count, drv.typical_mode, drv.mode, drv.mode_name) == (2, 1, 1, "DenseBoost")
     assert drv.answer_type == rp.ANS_DENSE and drv.us_per_sample == pytest.approx(31.25)
     sent = [rp.request(c, p) if c >= 0x80 else rp.request(c) for _, c, p in emu.requests]
     expected = [rp.request(rp.CMD_STOP), rp.request(rp.CMD_RESET), rp.request(rp.CMD_GET_INFO),
@@ -287,7 +287,7 @@ def test_dense_revolutions_over_pty_match_the_scene_and_pace(lidar):
 
 @pytest.mark.parametrize("mode,atype", [(0, rp.ANS_STANDARD), (2, rp.ANS_EXPRESS)])
 def test_other_scan_modes_over_pty(lidar, mode, atype):
-    run = lidar(scan_mode=mode)
+    run = lidar(scan_mode=mode, modes=S2_MODES + (EXPRESS_MODE,))
     run.wait_revs(2)
     assert run.drv.answer_type == atype
     r = run.revs[-1]
@@ -401,3 +401,32 @@ def test_real_express_capture_decodes_like_the_sdk():
     np.testing.assert_array_equal(out.dist_mm, dist)
     err = (out.angle_deg[hit] - angle[hit] + 180.0) % 360.0 - 180.0
     assert np.abs(err).max() < 0.025  # the SDK's fixed-point rounding (q8 start angles, q14 output)
+
+
+def test_emulator_streams_only_between_scan_and_stop(tmp_path):
+    """The emulator as a device: descriptor, capsules with the start flag on the first only, evenly
+    stepped start angles, paced output; nothing after A5 25."""
+    import serial
+
+    emu = RplidarEmulator(link=tmp_path / "rp").start()
+    try:
+        port = serial.Serial(emu.path, 1_000_000, timeout=0.3)
+        port.write(rp.motor_speed_request(600) + rp.express_scan_request(1))
+        assert rp.Descriptor.parse(port.read(7)) == rp.Descriptor(0x54, rp.MODE_MULTI, rp.ANS_DENSE)
+        t0 = time.monotonic()
+        data = port.read(84 * 80)  # one revolution's worth
+        elapsed = time.monotonic() - t0
+        caps = [data[i:i + 84] for i in range(0, len(data), 84)]
+        assert len(caps) == 80 and all(rp.capsule_checksum_ok(c) for c in caps)
+        starts = [rp.capsule_start(c) for c in caps]
+        assert [flag for _, flag in starts] == [True] + [False] * 79
+        steps = np.diff([a for a, _ in starts])
+        np.testing.assert_allclose(steps, 4.5, atol=1 / 64)
+        assert elapsed > 0.08  # 80 capsules take ~100 ms on the real link, not a burst
+        port.write(rp.request(rp.CMD_STOP))
+        time.sleep(0.05)
+        port.reset_input_buffer()
+        assert port.read(100) == b"" and not emu.streaming
+        port.close()
+    finally:
+        emu.stop()

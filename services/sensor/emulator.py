@@ -117,8 +117,9 @@ class ScanMode:
 S2_MODES = (
     ScanMode("Standard", rp.ANS_STANDARD, 1e6 / 5000),  # emulator's choice of rate, not vendor data
     ScanMode("DenseBoost", rp.ANS_DENSE, 1e6 / 32000),
-    ScanMode("Express", rp.ANS_EXPRESS, 1e6 / 16000),  # not on a real S2: lets tests cover 0x82
 )
+EXPRESS_MODE = ScanMode("Express", rp.ANS_EXPRESS, 1e6 / 16000)
+"""Not an S2 mode (A-series): ``modes=S2_MODES + (EXPRESS_MODE,)`` lets tests cover answer type 82."""
 S2_TYPICAL_MODE = 1
 S2_INFO = rp.DeviceInfo(model=0x71, firmware=(1, 2), hardware=18, serial="C0FFEE00112233445566778899AABBCC")
 
@@ -139,17 +140,18 @@ class RplidarEmulator:
     :param link: symlink to create to the pty's slave (like /dev/rplidar); None = no symlink.
     :param reset_s: how long the device stays silent after RESET.
     :param garbage_every / corrupt_every / truncate_every: periodic faults every N scan units.
+    :param modes: scan modes offered (GET_LIDAR_CONF), typical mode 1.
     """
 
     def __init__(self, scene=None, link: str | Path | None = None, reset_s: float = 0.5,
                  garbage_every: int = 0, corrupt_every: int = 0, truncate_every: int = 0,
-                 seed: int = 0):
+                 seed: int = 0, modes: tuple[ScanMode, ...] = S2_MODES):
         self.scene = scene or WallScene(default_walls())
         self.link = Path(link) if link else None
         self.reset_s = reset_s
         self.garbage_every, self.corrupt_every, self.truncate_every = garbage_every, corrupt_every, truncate_every
         self.rng = np.random.default_rng(seed)
-        self.modes = S2_MODES
+        self.modes = modes
         self.health = rp.Health(rp.HEALTH_OK, 0)
         self.rpm = 0
         self.default_rpm = 600
