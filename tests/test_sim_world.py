@@ -85,15 +85,21 @@ def test_intersection_scenarios_collide_without_evasion(name):
 
 
 def test_racetrack_traffic_laps_and_agent_is_faster():
+    """The agent parked on the track: traffic drives along the loop around the hairpins and
+    chicane (15 s), queueing behind it without touching anything."""
     with BulletWorld("racetrack") as w:
         w.reset(seed=2)
         assert len(w.cars) == 16
         s0 = w.world.progress(w.obstacles()[:, 0], w.obstacles()[:, 1])
-        for _ in range(30):
+        touched = set()
+        for _ in range(150):
             w.step([0.0, 0.0])
+            for c in w.cars[1:]:
+                touched |= {cp[2] for cp in w.bc.getContactPoints(bodyA=c.body) if cp[8] <= 0 and cp[2] != w.ground}
         obs = w.obstacles()
         moved = (w.world.progress(obs[:, 0], obs[:, 1]) - s0) % w.world.length
-        assert np.all((moved > 2.0) & (moved < 8.0))  # every obstacle car drives along the loop
+        assert np.sum(moved > 10.0) >= 10  # most drive on (those stuck behind the parked agent queue)
+        assert not touched
         assert w.car.agent_speed_scale > 1.0
         assert np.all(np.abs(w.world.lateral_offset(obs[:, 0], obs[:, 1])) < w.world.lane_width / 2)
 

@@ -272,6 +272,7 @@ class BulletWorld:
         self.prev_action = np.zeros(2)
         self.action = np.zeros(2)
         self.brake = False
+        self.traffic_brake = np.zeros(n, bool)   # obstacle cars braking (traffic driver's 3rd column)
         self._settle()
         if v0 > 0:
             self._set_speed(0, v0)
@@ -358,8 +359,9 @@ class BulletWorld:
     def begin_period(self) -> None:
         """Start of a control period: the traffic driver chooses the obstacle cars' actions."""
         if self.driver is not None and self.n_traffic:
-            act = np.asarray(self.driver.act(self._traffic_obs()), np.float64).reshape(self.n_traffic, 2)
-            act = np.clip(act, -1.0, 1.0)
+            act = np.asarray(self.driver.act(self._traffic_obs()), np.float64).reshape(self.n_traffic, -1)
+            self.traffic_brake[1:] = act[:, 2] > 0.5 if act.shape[1] > 2 else False
+            act = np.clip(act[:, :2], -1.0, 1.0)
             self.throttle[1:] = throttle_from_action(act[:, 0])
             self.steer_target[1:] = steer_from_action(act[:, 1], self.car)
 
@@ -376,6 +378,7 @@ class BulletWorld:
         self.w = wheel_speed_step(self.w, self.throttle, dt, car)
         if self.brake:
             self.w[0] = 0.0
+        self.w[self.traffic_brake] = 0.0
         self.steer = steer_rate_limit(self.steer, self.steer_target, dt, car)
 
     def _physics(self) -> None:

@@ -41,28 +41,33 @@ class TrafficDriver:
         """Start of an episode: ``n`` obstacle cars on ``world``."""
 
     def act(self, obs: TrafficObs) -> np.ndarray:
-        """Actions (n, 2): a_T, a_delta in [-1, 1] per obstacle car."""
+        """Actions (n, 2): a_T, a_delta in [-1, 1] per obstacle car (the agent's action space),
+        or (n, 3) with a third column > 0.5 = brake (wheel speed target 0): traffic cars may
+        brake, the agent's action space has no brake (paper)."""
         raise NotImplementedError
 
 
 class PurePursuitDriver(TrafficDriver):
-    """Follows the centerline (each car at its own lateral offset) with pure pursuit, full
-    throttle, and coasts when a car driving the same way is close ahead in its lane."""
+    """Follows the centerline (each car at its own lateral offset) with pure pursuit at full
+    throttle; coasts when a car driving the same way is close ahead in its lane, brakes when
+    it is very close (a queue behind a stopped car must not pile up)."""
 
     def __init__(self, lookahead: float = 1.0, lookahead_per_speed: float = 0.3,
-                 lateral_range: float = 0.35, throttle: float = 1.0, gap_m: float = 1.2,
-                 lane_halfwidth: float = 0.45):
+                 lateral_range: float = 0.35, throttle: float = 1.0, gap_m: float = 1.5,
+                 brake_gap_m: float = 1.0, lane_halfwidth: float = 0.45):
         """
         :param lookahead: pure-pursuit lookahead at standstill (m).
         :param lookahead_per_speed: extra lookahead per m/s of speed (s).
         :param lateral_range: each car keeps a random lateral offset in +- this (m).
         :param throttle: throttle when the way is free.
-        :param gap_m: coast when a car ahead (same direction, same lane) is closer than this.
+        :param gap_m: coast when a car ahead (same direction, same lane) is closer than this
+            (arc length between the car frames, m).
+        :param brake_gap_m: brake when it is closer than this.
         :param lane_halfwidth: lateral distance under which a car ahead counts as in the lane.
         """
         self.lookahead, self.k_v = lookahead, lookahead_per_speed
         self.lateral_range, self.throttle = lateral_range, throttle
-        self.gap_m, self.lane_halfwidth = gap_m, lane_halfwidth
+        self.gap_m, self.brake_gap_m, self.lane_halfwidth = gap_m, brake_gap_m, lane_halfwidth
 
     def reset(self, world: World, car: CarParams, n: int, rng: np.random.Generator) -> None:
         self.world, self.car = world, car
@@ -83,6 +88,7 @@ class PurePursuitDriver(TrafficDriver):
         delta = np.arctan2(2.0 * car.wheelbase * np.sin(alpha), np.maximum(dist, 1e-3))
         a_steer = np.clip(delta / car.steer_gain, -1.0, 1.0)
         a_thr = np.full(len(x), self.throttle)
+        brake = np.zeros(len(x))
         for i in range(len(x)):
             ds = np.mod(s_all - s[i], w.length)
             same_way = np.cos(everyone[:, 2] - yaw[i]) > 0
@@ -90,7 +96,8 @@ class PurePursuitDriver(TrafficDriver):
             ahead[i] = False
             if ahead.any():
                 a_thr[i] = 0.0
-        return np.stack([a_thr, a_steer], axis=1)
+                brake[i] = float(ds[ahead].min() < self.brake_gap_m)
+        return np.stack([a_thr, a_steer, brake], axis=1)
 
 
 DRIVERS = {"pure_pursuit": PurePursuitDriver, "centerline": PurePursuitDriver}
