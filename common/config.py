@@ -18,7 +18,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
 class Section(BaseModel):
@@ -146,6 +146,12 @@ class ActuatorConfig(Section):
     neutral: Literal["brake", "rpm0", "coast"] = "brake"
     """What "stop" sends: SET_CURRENT_BRAKE(brake_current_a), SET_RPM 0, or SET_CURRENT 0."""
     brake_current_a: float = Field(20.0, ge=0)
+
+    @model_validator(mode="after")
+    def _check_servo(self) -> "ActuatorConfig":
+        if self.servo_min > self.servo_max:
+            raise ValueError("servo_min: must not exceed servo_max")
+        return self
 
 
 class SimConfig(Section):
