@@ -54,7 +54,9 @@ class BicycleParams(_Frozen):
     speed_tau: float = Field(0.0, ge=0)
     """Lag of body speed behind wheel speed (s); 0 = none."""
     scrub: float = Field(0.0, ge=0)
-    """Speed loss in turns of the fast model: v = v_wheel * (1 - scrub * tan(delta)^2)."""
+    """Speed loss in turns of the fast model: v = v_wheel * (1 - scrub * tan(delta)^2 - ...)."""
+    scrub_lat: float = Field(0.0, ge=0)
+    """... - scrub_lat * |lateral acceleration| (s^2/m): drag of slipping tyres."""
 
 
 class CarParams(_Frozen):

@@ -46,14 +46,16 @@ def open_floor_scenario(tmpdir: str | Path):
 
 
 def random_actions(rng: np.random.Generator, n_seq: int, n_steps: int) -> np.ndarray:
-    """(S, T, 2) piecewise-constant actions: throttle in [-0.2, 1] (some coasting), steering in
-    [-1, 1] (beyond the limits too), each held 2-10 control steps."""
+    """(S, T, 2) piecewise-constant actions, each held 2-10 control steps: throttle in [-0.2, 1]
+    (some coasting) but half of the time in [0.7, 1] (the reward 5 T^2 makes the policy drive
+    flat out), steering in [-1.2, 1.2] (beyond the limits too: full lock is common)."""
     out = np.zeros((n_seq, n_steps, 2))
     for s in range(n_seq):
         t = 0
         while t < n_steps:
             hold = int(rng.integers(2, 11))
-            out[s, t:t + hold] = [rng.uniform(-0.2, 1.0), rng.uniform(-1.0, 1.0)]
+            thr = rng.uniform(0.7, 1.0) if rng.random() < 0.5 else rng.uniform(-0.2, 1.0)
+            out[s, t:t + hold] = [thr, rng.uniform(-1.2, 1.2)]
             t += hold
     return out
 
@@ -138,7 +140,7 @@ def nelder_mead(f, x0: np.ndarray, step: np.ndarray, iters: int = 300, tol: floa
 # products mu * c_s enter the model)
 FIT = {"lf": (0.02, 1.0, 0.03), "lr": (0.0, 1.0, 0.03), "iz": (0.001, 1.0, 0.03),
        "c_sf": (0.5, 50.0, 1.0), "c_sr": (0.5, 50.0, 1.0), "steer_tau": (0.0, 0.5, 0.03),
-       "speed_tau": (0.0, 1.0, 0.05), "scrub": (0.0, 5.0, 0.2)}
+       "speed_tau": (0.0, 1.0, 0.05), "scrub": (0.0, 5.0, 0.2), "scrub_lat": (0.0, 0.2, 0.01)}
 
 
 def _params(x: np.ndarray, base: BicycleParams) -> BicycleParams:
@@ -146,45 +148,66 @@ def _params(x: np.ndarray, base: BicycleParams) -> BicycleParams:
     return base.model_copy(update=upd)
 
 
+def _dataset(rng: np.random.Generator, n_seq: int, n_steps: int, car: CarParams):
+    acts = random_actions(rng, n_seq, n_steps)
+    v0 = np.where(rng.random(n_seq) < 0.3, 0.0, rng.uniform(0.3, 2.4, n_seq))
+    scales = np.where(np.arange(n_seq) % 2 == 0, 1.0, car.agent_speed_scale)
+    return acts, v0, scales
+
+
 def fit(car: CarParams, n_seq: int = 48, n_steps: int = 30, seed: int = 0, iters: int = 600,
         restarts: int = 4, log=print) -> tuple[BicycleParams, dict]:
-    """Collect PyBullet rollouts and fit; returns the fitted parameters and error statistics."""
+    """Collect PyBullet rollouts and fit; returns the fitted parameters and error statistics.
+
+    Each start point is fitted on the training sequences; the result with the lowest error on
+    held-out sequences (same distribution, other seed) wins, and its held-out errors are reported.
+    """
     from racecav.common.world import load_world
 
-    rng = np.random.default_rng(seed)
-    acts = random_actions(rng, n_seq, n_steps)
-    v0 = np.where(rng.random(n_seq) < 0.5, 0.0, rng.uniform(0.3, 1.7, n_seq))
-    scales = np.where(np.arange(n_seq) % 2 == 0, 1.0, car.agent_speed_scale)
+    train = _dataset(np.random.default_rng(seed), n_seq, n_steps, car)
+    held = _dataset(np.random.default_rng(seed + 1000), n_seq, n_steps, car)
     with tempfile.TemporaryDirectory() as tmp:
         sc = open_floor_scenario(tmp)
         world = load_world(sc.world)
-        log(f"PyBullet: {n_seq} rollouts of {n_steps} steps ...")
-        ref = bullet_rollouts(sc, car, acts, v0, scales)
+        log(f"PyBullet: 2 x {n_seq} rollouts of {n_steps} steps ...")
+        ref = bullet_rollouts(sc, car, *train)
+        vref = bullet_rollouts(sc, car, *held)
         base = car.bicycle
 
+        def errors(b, data, r):
+            return position_errors(fast_rollouts(world, car, b, *data), r)
+
         def loss(x):
-            traj = fast_rollouts(world, car, _params(x, base), acts, v0, scales)
-            return float(np.mean(position_errors(traj, ref) ** 2))
+            return float(np.mean(errors(_params(x, base), train, ref) ** 2))
 
         x0 = np.array([getattr(base, k) for k in FIT])
-        before = loss(x0)
-        x, after = x0, before
-        for _ in range(restarts):  # restarting from the best point escapes a collapsed simplex
-            x, after = nelder_mead(loss, x, np.array([v[2] for v in FIT.values()]), iters=iters)
-        fitted = _params(x, base).model_copy(update={"fitted": True})
-        err0 = position_errors(fast_rollouts(world, car, base, acts, v0, scales), ref)
-        err1 = position_errors(fast_rollouts(world, car, fitted, acts, v0, scales), ref)
-        # held-out sequences: the fit must generalise, not memorise
-        vrng = np.random.default_rng(seed + 1000)
-        vacts = random_actions(vrng, n_seq, n_steps)
-        vv0 = np.where(vrng.random(n_seq) < 0.5, 0.0, vrng.uniform(0.3, 1.7, n_seq))
-        vref = bullet_rollouts(sc, car, vacts, vv0, scales)
-        errv = position_errors(fast_rollouts(world, car, fitted, vacts, vv0, scales), vref)
-    stats = {"rmse_before": math.sqrt(before), "rmse_after": math.sqrt(after),
+        # Start points: the current parameters, and a stiff-tyre (kinematic) guess with the
+        # effective wheelbase PyBullet's locked 4WD shows in steady circles (~0.40 m) and its
+        # steering joint lag (~0.27 s). Nelder-Mead gets stuck easily in 10 dimensions.
+        guess = base.model_copy(update={"lf": 0.2, "lr": 0.2, "iz": 0.01, "c_sf": 40.0, "c_sr": 40.0,
+                                        "steer_tau": 0.27, "speed_tau": 0.0, "scrub": 0.0,
+                                        "scrub_lat": 0.01})
+        best, best_val = base, float(np.mean(errors(base, held, vref) ** 2))
+        for start in (x0, np.array([getattr(guess, k) for k in FIT])):
+            x = start
+            for _ in range(restarts):  # restarting from the best point escapes a collapsed simplex
+                x, val = nelder_mead(loss, x, np.array([v[2] for v in FIT.values()]), iters=iters)
+            cand = _params(x, base)
+            cval = float(np.mean(errors(cand, held, vref) ** 2))
+            log(f"  start {np.round(start, 3).tolist()}: train rmse {math.sqrt(val):.4f} m, "
+                f"held-out rmse {math.sqrt(cval):.4f} m")
+            if cval < best_val:
+                best, best_val = cand, cval
+        fitted = best.model_copy(update={"fitted": True})
+        err0 = errors(base, train, ref)
+        err1 = errors(fitted, train, ref)
+        errv = errors(fitted, held, vref)
+    stats = {"rmse_before": float(np.sqrt(np.mean(err0 ** 2))), "rmse_after": float(np.sqrt(np.mean(err1 ** 2))),
              "final_err_median_before": float(np.median(err0[:, -1])),
              "final_err_median_after": float(np.median(err1[:, -1])),
              "final_err_p90_after": float(np.percentile(err1[:, -1], 90)),
              "final_err_max_after": float(err1[:, -1].max()),
+             "heldout_rmse": float(np.sqrt(np.mean(errv ** 2))),
              "heldout_final_err_median": float(np.median(errv[:, -1])),
              "heldout_final_err_p90": float(np.percentile(errv[:, -1], 90)),
              "heldout_final_err_max": float(errv[:, -1].max()),
@@ -208,7 +231,8 @@ def write_bicycle(car_name: str, b: BicycleParams, stats: dict) -> Path:
         f" p90 {stats['heldout_final_err_p90']:.3f} m.",
         "# Single-track model (services/sim/fast_kernels.py integrate): CoG lf/lr from the axles of an",
         "# effective wheelbase lf + lr, yaw inertia iz, cornering stiffness coefficients c_sf/c_sr",
-        "# (mu fixed), steering and speed lags, speed loss in turns 1 - scrub * tan(delta)^2.",
+        "# (mu fixed), steering and speed lags, speed loss in turns scrub * tan(delta)^2 +",
+        "# scrub_lat * |lateral acceleration|.",
         "[bicycle]",
     ]
     for name, val in b.model_dump().items():

@@ -312,8 +312,8 @@ def contacts(x, y, yaw, active, walls, wall_box, corners, hx, hy, wall_r, check,
 
 @njit(cache=True, fastmath=True)
 def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, wheel_radius,
-              wheelbase, mass, g, lf, lr, iz, mu, c_sf, c_sr, steer_tau, speed_tau, scrub, v_kin,
-              dt):
+              wheelbase, mass, g, lf, lr, iz, mu, c_sf, c_sr, steer_tau, speed_tau, scrub,
+              scrub_lat, v_kin, dt):
     """One physics substep of the single-track model for every car.
 
     The wheel speed ``w`` and the rate-limited steering command ``delta_cmd`` of this substep come
@@ -322,7 +322,9 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, w
     (slip angle ``beta`` and yaw rate ``r`` at the CoG, ``lr`` ahead of the rear axle), with
     implicit Euler for (beta, r) (stiff at low speed) and the kinematic model below ``v_kin``.
     The speed at the CoG follows the wheel speed (lag ``speed_tau``), reduced in turns by
-    ``1 - scrub * tan(delta)^2`` (tyre scrub of the locked 4WD). The pose is base_link's.
+    ``1 - scrub * tan(delta)^2 - scrub_lat * |a_lat|`` (tyre scrub of the locked 4WD, and drag
+    of the slipping tyres growing with the lateral acceleration ``a_lat = r v`` of the previous
+    substep). The pose is base_link's.
     """
     N, C = x.shape
     L = lf + lr
@@ -336,7 +338,8 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, w
             delta[n, c] += (delta_cmd[n, c] - delta[n, c]) * ks
             d = delta[n, c]
             td = math.tan(d)
-            v_target = speed_scale[n, c] * w[n, c] * wheel_radius * (1.0 - scrub * td * td)
+            loss = scrub * td * td + scrub_lat * abs(r[n, c] * v[n, c])
+            v_target = speed_scale[n, c] * w[n, c] * wheel_radius * max(0.0, 1.0 - loss)
             v0 = v[n, c]
             v1 = v0 + (v_target - v0) * kv
             vm = 0.5 * (v0 + v1)

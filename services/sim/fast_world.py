@@ -205,6 +205,7 @@ class FastWorld:
         self.c_sf, self.c_sr = float(b.c_sf), float(b.c_sr)
         self.steer_tau, self.speed_tau = float(b.steer_tau), float(b.speed_tau)
         self.scrub = float(getattr(b, "scrub", 0.0))
+        self.scrub_lat = float(getattr(b, "scrub_lat", 0.0))
 
     # ------------------------------------------------------------------ resets
     def seed(self, seed: int | None) -> None:
@@ -280,7 +281,7 @@ class FastWorld:
             K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
                         self.delta_cmd, self.w, self.speed_scale, self.active, car.wheel_radius,
                         car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
-                        self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub, V_KIN,
+                        self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub, self.scrub_lat, V_KIN,
                         self.dt)
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,

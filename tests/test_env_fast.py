@@ -1,0 +1,261 @@
+"""The gymnasium env racecav/Overtake-v0 and the fast batched world: spaces, reward, termination,
+auto-reset, determinism, lidar geometry, and a short PPO run."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import racecav.training  # noqa: F401  (registers racecav/Overtake-v0)
+from racecav.common.lidar import ray_angles
+from racecav.services.sim.fast_world import FastWorld
+from racecav.training.env import OvertakeEnv, reward
+from racecav.training.vec_env import FastVecEnv
+
+
+# --------------------------------------------------------------------------- env API
+def test_env_checker_fast():
+    env = gym.make("racecav/Overtake-v0", backend="fast")
+    check_env(env.unwrapped)
+    assert env.observation_space.shape == (170,)
+    assert env.action_space.shape == (2,)
+    assert np.all(env.action_space.low == -1) and np.all(env.action_space.high == 1)
+
+
+def test_env_checker_bullet():
+    env = gym.make("racecav/Overtake-v0", backend="bullet", n_obstacles=15)
+    try:
+        check_env(env.unwrapped)
+        obs, _ = env.reset(seed=3)
+        assert obs.shape == (170,) and obs.dtype == np.float32
+    finally:
+        env.close()
+
+
+def test_options_are_validated():
+    with pytest.raises(ValueError, match="heading"):
+        OvertakeEnv(heading="sideways")
+    with pytest.raises(ValueError, match="n_obstacles"):
+        OvertakeEnv(n_obstacles=16)
+
+
+# --------------------------------------------------------------------------- reward
+def test_reward_cases():
+    # 5 T^2 with T = clip(a_T, 0, 1)
+    assert reward([0.5], [0.0], [0.0])[0] == pytest.approx(1.25)
+    assert reward([1.0], [0.3], [-0.2])[0] == pytest.approx(5.0)
+    assert reward([0.0], [0.0], [0.0])[0] == 0.0
+    # full-lock reversal on the clipped steering, either way
+    assert reward([1.0], [1.0], [-1.0])[0] == -2.0
+    assert reward([0.7], [-1.0], [1.0])[0] == -2.0
+    # anything short of a full reversal is not penalised
+    assert reward([1.0], [0.99], [-1.0])[0] == pytest.approx(5.0)
+    assert reward([1.0], [1.0], [1.0])[0] == pytest.approx(5.0)
+
+
+def test_env_reward_clips_actions():
+    env = OvertakeEnv(n_obstacles=0)
+    env.reset(seed=0)
+    # throttle beyond the box is clipped to 1 (and negative throttle to 0)
+    _, r, *_ = env.step(np.array([3.0, 0.0], np.float32))
+    assert r == pytest.approx(5.0)
+    _, r, *_ = env.step(np.array([-0.5, 0.0], np.float32))
+    assert r == 0.0
+    # steering beyond [-1, 1] is clipped before the reversal test: 2.5 then -4 is a reversal
+    env.step(np.array([0.0, 2.5], np.float32))
+    _, r, *_ = env.step(np.array([1.0, -4.0], np.float32))
+    assert r == -2.0
+    # the first step of an episode has no previous steering
+    env.reset(seed=1)
+    _, r, *_ = env.step(np.array([1.0, -1.0], np.float32))
+    assert r == pytest.approx(5.0)
+
+
+# --------------------------------------------------------------------------- termination
+def _straight_pose(fw_or_env):
+    """A pose on the main straight (x in [0, 22], y = 0 is the centreline, lane 2.4 m)."""
+    return dict(x=6.0, y=0.0, yaw=0.0)
+
+
+def test_contact_with_wall_terminates():
+    env = OvertakeEnv(n_obstacles=0)
+    env.reset(seed=0)
+    # on the straight, facing the left wall (y = +1.2) 0.6 m away: full throttle hits it
+    env.world.set_state(0, 0, x=6.0, y=0.0, yaw=math.pi / 2, v=0.0, w=0.0, delta=0.0)
+    for k in range(30):
+        _, r, term, trunc, info = env.step(np.array([1.0, 0.0], np.float32))
+        if term:
+            break
+    assert term and not trunc and info["contact_wall"]
+    assert k < 15
+    assert info["y"] < 1.2
+
+
+def test_contact_with_car_terminates():
+    env = OvertakeEnv(n_obstacles=1)
+    env.reset(seed=0)
+    fw = env.world
+    fw.set_state(0, 0, x=4.0, y=0.0, yaw=0.0, v=0.0, w=0.0, delta=0.0)
+    fw.set_state(0, 1, x=6.0, y=0.0, yaw=0.0, v=0.0, w=0.0, delta=0.0)
+    fw.driver = lambda world: np.zeros((1, 1, 2))  # the obstacle stays parked
+    # the parked car is seen straight ahead at 2 m - 0.275 (its rear) - 0.20 (mount)
+    obs = fw.agent_obs()[0]
+    assert obs[84] == pytest.approx(2.0 - fw.car.length / 2 - fw.car.lidar_mount.x, abs=1e-3)
+    for _ in range(30):
+        _, _, term, trunc, info = env.step(np.array([1.0, 0.0], np.float32))
+        if term:
+            break
+    assert term and info["contact_car"] == 1 and not info["contact_wall"]
+
+
+def test_vecenv_auto_reset_and_infos():
+    venv = FastVecEnv(n_envs=4, n_obstacles=0, time_limit=2.0, seed=0)
+    obs = venv.reset()
+    w = venv.world
+    # env 0 drives into the wall, the others stand still until the 2 s time limit
+    w.set_state(0, 0, x=6.0, y=0.0, yaw=math.pi / 2, v=0.0, w=0.0, delta=0.0)
+    acts = np.zeros((4, 2))
+    acts[0, 0] = 1.0
+    ended = {}
+    for k in range(20):
+        obs, rew, dones, infos = venv.step(acts)
+        assert rew.dtype == np.float32 and dones.dtype == bool
+        for i in np.flatnonzero(dones):
+            ended.setdefault(i, (k, infos[i]))
+    k0, info0 = ended[0]
+    assert k0 < 19 and info0["TimeLimit.truncated"] is False
+    assert info0["terminal_observation"].shape == (170,)
+    for i in (1, 2, 3):
+        k, info = ended[i]
+        assert k == 19 and info["TimeLimit.truncated"] is True
+    # after an auto-reset the episode counter restarts
+    assert venv.steps[0] == 19 - k0 and np.all(venv.steps[1:] == 0)
+
+
+# --------------------------------------------------------------------------- determinism
+def _rollout(seed, n=40):
+    venv = FastVecEnv(n_envs=8, seed=seed)
+    out = [venv.reset()]
+    rng = np.random.default_rng(1)
+    for _ in range(n):
+        a = rng.uniform(-1, 1, (8, 2))
+        o, r, d, _ = venv.step(a)
+        out += [o, r[:, None], d[:, None]]
+    return out, venv.world.agent_state
+
+
+def test_determinism_under_seed():
+    a, sa = _rollout(7)
+    b, sb = _rollout(7)
+    c, _ = _rollout(8)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b)) and np.array_equal(sa, sb)
+    assert not np.array_equal(a[0], c[0])
+
+
+def test_single_env_determinism():
+    def run(seed):
+        env = gym.make("racecav/Overtake-v0", heading="reversed")
+        obs, _ = env.reset(seed=seed)
+        seq = [obs]
+        for _ in range(20):
+            seq.append(env.step(np.array([0.8, 0.1], np.float32))[0])
+        return np.array(seq)
+
+    assert np.array_equal(run(3), run(3))
+    assert not np.array_equal(run(3), run(4))
+
+
+# --------------------------------------------------------------------------- world
+def _brute_force_scan(fw, n, c):
+    """Independent reference: every ray against every edge of every wall box and car box."""
+    segs = []
+
+    def box(cx, cy, yaw, hx, hy):
+        co, si = math.cos(yaw), math.sin(yaw)
+        p = np.array([(cx + co * x - si * y, cy + si * x + co * y)
+                      for x, y in ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))])
+        segs.append(np.concatenate([p, np.roll(p, -1, 0)], 1))
+
+    r = fw.world.wall_thickness / 2
+    for x0, y0, x1, y1 in fw.walls:
+        box((x0 + x1) / 2, (y0 + y1) / 2, math.atan2(y1 - y0, x1 - x0), math.hypot(x1 - x0, y1 - y0) / 2 + r, r)
+    for j in range(fw.n_cars):
+        if j != c and fw.active[n, j]:
+            box(fw.x[n, j], fw.y[n, j], fw.yaw[n, j], fw.car.length / 2, fw.car.width / 2)
+    S = np.concatenate(segs)
+    m = fw.car.lidar_mount
+    yaw = fw.yaw[n, c]
+    sx = fw.x[n, c] + math.cos(yaw) * m.x - math.sin(yaw) * m.y
+    sy = fw.y[n, c] + math.sin(yaw) * m.x + math.cos(yaw) * m.y
+    ang = ray_angles(fw.spec).astype(np.float64) + yaw + m.yaw
+    d = np.stack([np.cos(ang), np.sin(ang)], 1)[:, None, :]
+    a = S[None, :, :2] - [sx, sy]
+    e = S[None, :, 2:] - S[None, :, :2]
+    den = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
+    with np.errstate(all="ignore"):
+        t = (a[..., 0] * e[..., 1] - a[..., 1] * e[..., 0]) / den
+        u = (a[..., 0] * d[..., 1] - a[..., 1] * d[..., 0]) / den
+    t = np.where((t > 0) & (u >= 0) & (u <= 1), t, np.inf).min(1)
+    return np.where(t <= fw.spec.range_max, t, np.inf)
+
+
+def test_lidar_matches_brute_force_for_every_car():
+    fw = FastWorld(n_envs=3, obstacle_lidar=True, seed=0)
+    fw.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        _, _, col, _ = fw.step(np.stack([rng.uniform(0, 1, 3), rng.uniform(-1, 1, 3)], 1))
+    for n in range(3):
+        for c in range(fw.n_cars):
+            ref = _brute_force_scan(fw, n, c)
+            got = fw.ranges[n, c]
+            assert np.array_equal(np.isfinite(ref), np.isfinite(got))
+            fin = np.isfinite(ref)
+            assert np.abs(ref[fin] - got[fin]).max() < 1e-4
+
+
+def test_agent_is_faster_and_heading_reversed():
+    fw = FastWorld(n_envs=2, heading="reversed", seed=0)
+    fw.reset()
+    # reversed: the agent faces against the centerline direction
+    k = fw.cl_idx[:, 0]
+    diff = np.angle(np.exp(1j * (fw.yaw[:, 0] - fw.cl[k, 2])))
+    assert np.all(np.abs(diff) > math.pi - 0.2)
+    assert fw.speed_scale[0, 0] == fw.car.agent_speed_scale > 1.0
+    assert np.all(fw.speed_scale[:, 1:] == 1.0)
+
+
+def test_obstacle_cars_lap_the_track():
+    fw = FastWorld(n_envs=2, seed=0)
+    fw.reset()
+    fw.remove_car(0, 0)
+    fw.remove_car(1, 0)
+    s0 = fw.cl_idx[:, 1:].copy()
+    travelled = np.zeros_like(s0, dtype=float)
+    for _ in range(100):
+        prev = fw.cl_idx[:, 1:].copy()
+        fw.step(np.zeros((2, 2)))
+        step = (fw.cl_idx[:, 1:] - prev) % len(fw.cl)
+        travelled += np.where(step < len(fw.cl) / 2, step, step - len(fw.cl)) * fw.cl_ds
+    # 10 s of traffic: every obstacle car moved forward along the track, few respawns
+    assert np.all(travelled[fw.active[:, 1:]] > 5.0)
+    assert fw.respawns <= 4
+    del s0
+
+
+# --------------------------------------------------------------------------- training
+def test_ppo_runs_on_the_fast_vecenv():
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    torch.set_num_threads(1)
+    venv = VecMonitor(FastVecEnv(n_envs=16, seed=0))
+    model = PPO("MlpPolicy", venv, n_steps=128, batch_size=64, n_epochs=2, seed=0, verbose=0,
+                policy_kwargs=dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh))
+    model.learn(4096)
+    assert model.num_timesteps >= 4096
+    act, _ = model.predict(venv.reset(), deterministic=True)
+    assert act.shape == (16, 2)
