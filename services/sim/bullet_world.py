@@ -332,11 +332,11 @@ class BulletWorld:
             while pending and pending[0][0] < t1 - 1e-12:
                 ts, a = pending.pop(0)
                 if ts > t0:
-                    self._actuate(ts - t0)
+                    self.actuate(ts - t0)
                     t0 = ts
                 apply(*a) if physical else apply(a)
-            self._actuate(t1 - t0)
-            self._physics()
+            self.actuate(t1 - t0)
+            self.physics_step()
         return self.end_period()
 
     def set_action(self, actions, brake: bool = False) -> None:
@@ -367,10 +367,10 @@ class BulletWorld:
 
     def substep(self) -> None:
         """One physics step of the car's physics_dt: actuators, then Bullet."""
-        self._actuate(self.car.physics_dt)
-        self._physics()
+        self.actuate(self.car.physics_dt)
+        self.physics_step()
 
-    def _actuate(self, dt: float) -> None:
+    def actuate(self, dt: float) -> None:
         """Advance the actuator states by ``dt``: friction-model wheel speed, steering slew."""
         if dt <= 0:
             return
@@ -381,7 +381,7 @@ class BulletWorld:
         self.w[self.traffic_brake] = 0.0
         self.steer = steer_rate_limit(self.steer, self.steer_target, dt, car)
 
-    def _physics(self) -> None:
+    def physics_step(self) -> None:
         """Motors to the actuator states, kinematic obstacles, one Bullet step, contacts."""
         self._apply_motors()
         self.t += self.car.physics_dt

@@ -122,6 +122,8 @@ class SimService(Service):
         self.pending = []
         self.world.set_physical(0.0, 0.0, brake=False)
         self._wall0 = None
+        self._applied_ns = 0
+        self._next = None
         self._rtf_window = []
         self._episode_wall_ns = time.monotonic_ns()
         self.started = not (self.scfg.mode == "realtime" and self.scfg.wait_for_controller)
@@ -265,37 +267,60 @@ class SimService(Service):
                     return
             self.started = True
         rtf = self.scfg.real_time_factor
-        now = time.monotonic()
+        dt = car.physics_dt
         if self._wall0 is None:
-            self._wall0, self._sim0 = now, w.t
+            self._wall0, self._sim0 = time.monotonic(), w.t
         w.begin_period()
         for _ in range(car.physics_substeps):
+            t0 = w.t
             if rtf > 0:
-                due = self._wall0 + (w.t - self._sim0) / rtf
-                lag = time.monotonic() - due
+                # simulate [t0, t0 + dt] once the wall clock has reached its end, so a command
+                # that arrived inside it switches the actuators at its arrival time
+                lag = time.monotonic() - (self._wall0 + (t0 + dt - self._sim0) / rtf)
                 if lag < 0:
                     if self.stop_event.wait(-lag):
                         return
                 elif lag > 0.5:  # far behind (slow machine, rtf too high): do not sprint to catch up
                     self.counters["overruns"] += 1
-                    self._wall0, self._sim0 = time.monotonic(), w.t
-            self._apply_newest()
-            w.substep()
+                    self._wall0, self._sim0 = time.monotonic() - dt / rtf, t0
+            rel = self._apply_newest(t0, dt, rtf)
+            if rel > 0:  # the new command arrived inside this step: old command until then
+                w.actuate(rel)
+                self._set_command()
+            w.actuate(dt - rel)
+            w.physics_step()
         w.end_period()
         self._rtf_window.append((time.monotonic(), w.t))
         self._rtf_window = self._rtf_window[-50:]
         self._after_period()
 
-    def _apply_newest(self) -> None:
+    def _apply_newest(self, t0: float, dt: float, rtf: float) -> float:
+        """Pick the command for the physics step starting at sim time t0: returns the offset
+        (s) into the step at which a newly arrived command takes over (0 = from the start). The
+        command is applied by :meth:`_set_command` (now if the offset is 0)."""
         cmd, arrival_ns = self.cmd.latest()
-        fresh = cmd is not None and (time.monotonic_ns() - arrival_ns) <= self.scfg.watchdog_s * 1e9
-        if fresh:
-            self.world.set_physical(cmd.throttle, cmd.steering_angle)
-            self.last_source = cmd.source
-        else:
+        now_ns = time.monotonic_ns()
+        if cmd is None or now_ns - arrival_ns > self.scfg.watchdog_s * 1e9:
             if cmd is not None and not self.world.brake:
                 self.counters["watchdog_brakes"] += 1
+            self._next = None
             self.world.set_physical(0.0, 0.0, brake=True)
+            return 0.0
+        self._next = cmd
+        rel = 0.0
+        if arrival_ns != self._applied_ns:
+            if rtf > 0:
+                t_arrival = self._sim0 + (arrival_ns * 1e-9 - self._wall0) * rtf
+                rel = min(max(t_arrival - t0, 0.0), dt)
+            self._applied_ns = arrival_ns
+        if rel == 0.0:
+            self._set_command()
+        return rel
+
+    def _set_command(self) -> None:
+        cmd = self._next
+        self.world.set_physical(cmd.throttle, cmd.steering_angle)
+        self.last_source = cmd.source
 
     def _step_lockstep(self) -> None:
         w = self.world
