@@ -11,26 +11,15 @@ from racecav.common.vehicle import load_car
 from racecav.common.world import load_world
 from racecav.services.sim.fast_world import FastWorld
 from racecav.training.env import BulletBackend
-from racecav.training.fit_bicycle import (bullet_rollouts, fast_rollouts, open_floor_scenario,
-                                          position_errors, random_actions)
+from racecav.training.fit_bicycle import (DESIGNED, bullet_rollouts, designed_actions,
+                                          fast_rollouts, open_floor_scenario, position_errors,
+                                          random_actions)
 
 T = 30  # 3 s of 0.1 s control periods
 
 
-def _mixed(kind: str) -> np.ndarray:
-    t = np.arange(T) * 0.1
-    if kind == "slalom":
-        return np.stack([0.6 + 0.4 * np.sin(2.0 * t), 0.3 * np.sin(1.5 * t)], 1)
-    if kind == "hard-left-then-right":
-        return np.stack([np.ones(T), np.where(t < 1.5, 1.0, -1.0)], 1)
-    if kind == "coast-and-turn":
-        return np.stack([np.where(t < 1.0, 1.0, np.where(t < 2.0, 0.0, 0.7)), np.where(t < 1.0, 0.0, 0.25)], 1)
-    if kind == "pulses":
-        return np.stack([(np.sin(4.0 * t) > 0).astype(float), 0.5 * np.sign(np.sin(1.0 * t + 0.3))], 1)
-    raise ValueError(kind)
-
-
-KINDS = ["slalom", "hard-left-then-right", "coast-and-turn", "pulses"]
+KINDS = list(DESIGNED)
+_mixed = designed_actions
 
 
 @pytest.fixture(scope="module")

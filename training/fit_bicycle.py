@@ -1,6 +1,7 @@
 """Fit the fast backend's single-track model to rollouts of the PyBullet car.
 
-``python -m racecav.training.fit_bicycle [--car slash] [--sequences 48] [--write]``
+``python -m racecav.training.fit_bicycle [--car slash] [--sequences 64] [--write]``
+``python -m racecav.training.fit_bicycle --report`` (parity section of docs/training-env.md)
 
 Both backends start from the same state on an open floor (no walls within lidar range) and play
 the same random piecewise-constant action sequences (throttle and steering held 0.2-1.0 s, both
@@ -100,6 +101,25 @@ def fast_rollouts(world, car: CarParams, bicycle, actions: np.ndarray, v0: np.nd
     return out
 
 
+DESIGNED = ("slalom", "hard-left-then-right", "coast-and-turn", "pulses")
+"""Designed 3 s sequences of mixed throttle and steering (parity tests and report)."""
+
+
+def designed_actions(kind: str, n_steps: int = 30, dt: float = 0.1) -> np.ndarray:
+    """(T, 2) actions of a designed sequence (see DESIGNED)."""
+    t = np.arange(n_steps) * dt
+    if kind == "slalom":
+        return np.stack([0.6 + 0.4 * np.sin(2.0 * t), 0.3 * np.sin(1.5 * t)], 1)
+    if kind == "hard-left-then-right":
+        return np.stack([np.ones(n_steps), np.where(t < 1.5, 1.0, -1.0)], 1)
+    if kind == "coast-and-turn":
+        return np.stack([np.where(t < 1.0, 1.0, np.where(t < 2.0, 0.0, 0.7)),
+                         np.where(t < 1.0, 0.0, 0.25)], 1)
+    if kind == "pulses":
+        return np.stack([(np.sin(4.0 * t) > 0).astype(float), 0.5 * np.sign(np.sin(1.0 * t + 0.3))], 1)
+    raise ValueError(f"unknown designed sequence {kind!r} (known: {DESIGNED})")
+
+
 def position_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(S, T+1) distance between two sets of trajectories."""
     return np.hypot(a[..., 0] - b[..., 0], a[..., 1] - b[..., 1])
@@ -155,7 +175,7 @@ def _dataset(rng: np.random.Generator, n_seq: int, n_steps: int, car: CarParams)
     return acts, v0, scales
 
 
-def fit(car: CarParams, n_seq: int = 48, n_steps: int = 30, seed: int = 0, iters: int = 600,
+def fit(car: CarParams, n_seq: int = 64, n_steps: int = 30, seed: int = 0, iters: int = 600,
         restarts: int = 4, log=print) -> tuple[BicycleParams, dict]:
     """Collect PyBullet rollouts and fit; returns the fitted parameters and error statistics.
 
@@ -215,6 +235,91 @@ def fit(car: CarParams, n_seq: int = 48, n_steps: int = 30, seed: int = 0, iters
     return fitted, stats
 
 
+def wall_range_errors(car: CarParams, n_poses: int = 24, seed: int = 0) -> np.ndarray:
+    """|fast - PyBullet| wall ranges (m) of the agent at random racetrack poses (same pose in both)."""
+    import math as m
+
+    from racecav.common.config import EnvConfig
+    from racecav.services.sim.fast_world import FastWorld
+    from racecav.training.env import BulletBackend
+
+    bw = BulletBackend(EnvConfig(backend="bullet", n_obstacles=0), seed=seed)
+    fw = FastWorld(n_envs=1, n_obstacles=0, car=car, seed=seed)
+    try:
+        bw.reset(seed=seed)
+        fw.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        out = []
+        for _ in range(n_poses):
+            x, y, yaw = fw.world.centerline_pose(rng.uniform(0, fw.world.length))
+            off = rng.uniform(-0.6, 0.6)
+            x, y, yaw = x - off * m.sin(yaw), y + off * m.cos(yaw), yaw + rng.uniform(-0.5, 0.5)
+            bw.set_state(x=x, y=y, yaw=yaw)
+            fw.set_state(0, 0, x=x, y=y, yaw=yaw, v=0.0, w=0.0, delta=0.0)
+            rb, rf = bw.bw.scan_ranges, fw.ranges[0, 0]
+            both = np.isfinite(rb) & np.isfinite(rf)
+            out.append(np.abs(rb[both] - rf[both]))
+        return np.concatenate(out)
+    finally:
+        bw.close()
+
+
+def parity_report(car: CarParams, log=print) -> str:
+    """Markdown: the fast backend against PyBullet with the car file's fitted model."""
+    from racecav.common.world import load_world
+
+    combos = [(k, v0, s) for k in DESIGNED for v0 in (0.0, 1.2) for s in (1.0, car.agent_speed_scale)]
+    acts = np.stack([designed_actions(k) for k, _, _ in combos])
+    v0 = np.array([c[1] for c in combos])
+    scales = np.array([c[2] for c in combos])
+    with tempfile.TemporaryDirectory() as tmp:
+        sc = open_floor_scenario(tmp)
+        world = load_world(sc.world)
+        log("PyBullet: designed and random rollouts ...")
+        ref = bullet_rollouts(sc, car, acts, v0, scales)
+        got = fast_rollouts(world, car, car.bicycle, acts, v0, scales)
+        dflt = fast_rollouts(world, car, BicycleParams(), acts, v0, scales)
+        rnd = _dataset(np.random.default_rng(777), 32, 30, car)
+        rref = bullet_rollouts(sc, car, *rnd)
+        rerr = position_errors(fast_rollouts(world, car, car.bicycle, *rnd), rref)[:, -1]
+    err = position_errors(got, ref)[:, -1]
+    derr = position_errors(dflt, ref)[:, -1]
+    yerr = np.abs(np.angle(np.exp(1j * (got[:, -1, 2] - ref[:, -1, 2]))))
+    travelled = np.hypot(*(ref[:, -1, :2] - ref[:, 0, :2]).T)
+    rows = [f"| {k} | {v:.1f} | {s:.1f} | {d:.2f} | {e * 100:.1f} | {y:.3f} | {de * 100:.1f} |"
+            for (k, v, s), d, e, y, de in zip(combos, travelled, err, yerr, derr)]
+    log("lidar: wall ranges at random racetrack poses ...")
+    wr = wall_range_errors(car)
+    b = car.bicycle
+    return "\n".join([
+        "Same initial state, same actions, 3 s (30 control periods), open floor. Speed scale 1.0 is an",
+        f"obstacle car, {car.agent_speed_scale:g} the racetrack agent. Fitted model: lf {b.lf:.3f}, lr {b.lr:.3f}, "
+        f"iz {b.iz:.3f}, c_sf {b.c_sf:.2f}, c_sr {b.c_sr:.2f}, steer_tau {b.steer_tau:.3f} s, "
+        f"speed_tau {b.speed_tau:.3f} s, scrub {b.scrub:.3f}, scrub_lat {b.scrub_lat:.4f}.",
+        "",
+        "| sequence | v0 (m/s) | speed scale | PyBullet travelled (m) | position error (cm) | yaw error (rad) | unfitted defaults (cm) |",
+        "|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+        f"Designed sequences: median {np.median(err) * 100:.1f} cm, {np.mean(err < 0.1) * 100:.0f} % within 10 cm, "
+        f"max {err.max() * 100:.1f} cm. Random held actions (32 rollouts, not the fit's): median "
+        f"{np.median(rerr) * 100:.1f} cm, p90 {np.percentile(rerr, 90) * 100:.1f} cm, max {rerr.max() * 100:.1f} cm.",
+        "",
+        f"Lidar, wall ranges at 24 random racetrack poses ({wr.size} rays): median |difference| "
+        f"{np.median(wr) * 100:.3f} cm, {np.mean(wr < 0.02) * 100:.1f} % within 2 cm, max {wr.max() * 100:.1f} cm.",
+    ])
+
+
+def write_report(markdown: str, doc: Path = Path("docs/training-env.md")) -> Path:
+    """Replace the parity section (between ``<!-- parity -->`` markers) of the env doc."""
+    text = doc.read_text()
+    pattern = re.compile(r"<!-- parity -->.*?<!-- /parity -->", re.S)
+    body = ("<!-- parity -->\n_Generated by `python -m racecav.training.fit_bicycle --report`._\n\n"
+            + markdown.strip() + "\n<!-- /parity -->")
+    doc.write_text(pattern.sub(lambda _m: body, text) if pattern.search(text) else text.rstrip() + "\n\n" + body + "\n")
+    return doc
+
+
 def write_bicycle(car_name: str, b: BicycleParams, stats: dict) -> Path:
     """Rewrite the ``[bicycle]`` section (the last section) of the car file."""
     path = CARS_DIR / f"{car_name}.toml"
@@ -244,14 +349,21 @@ def write_bicycle(car_name: str, b: BicycleParams, stats: dict) -> Path:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--car", default="slash")
-    ap.add_argument("--sequences", type=int, default=48)
+    ap.add_argument("--sequences", type=int, default=64)
     ap.add_argument("--steps", type=int, default=30, help="control steps per rollout (0.1 s each)")
     ap.add_argument("--iters", type=int, default=600, help="Nelder-Mead iterations per restart")
     ap.add_argument("--restarts", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--write", action="store_true", help="store the result in the car file")
+    ap.add_argument("--report", action="store_true",
+                    help="no fit: measure parity with the car file's model into docs/training-env.md")
     args = ap.parse_args(argv)
     car = load_car(args.car)
+    if args.report:
+        md = parity_report(car)
+        print(md)
+        print("wrote", write_report(md))
+        return 0
     fitted, stats = fit(car, args.sequences, args.steps, args.seed, args.iters, args.restarts)
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in stats.items()})
     print(fitted)
