@@ -372,8 +372,20 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     names = args[1:] or ["racetrack", "intersection"]
     fig, axes = plt.subplots(1, len(names), figsize=(7 * len(names), 5))
+    from racecav.common.scenario import load_scenario, scenario_names
+
     for ax, name in zip(np.atleast_1d(axes), names):
         plot_world(load_world(name), ax)
+        # the start poses of the scenarios played in this world (ego green, obstacles red)
+        for sc in (load_scenario(n) for n in scenario_names()):
+            if sc.world != name or sc.ego is None:
+                continue
+            for pose, color, label in [((sc.ego.x, sc.ego.y, sc.ego.yaw_deg), "g", "ego"),
+                                       *(((o.x, o.y, o.yaw_deg), "r", sc.name) for o in sc.obstacles)]:
+                x, y, yaw = pose[0], pose[1], math.radians(pose[2])
+                ax.annotate("", xy=(x + math.cos(yaw), y + math.sin(yaw)), xytext=(x, y),
+                            arrowprops=dict(arrowstyle="->", color=color, lw=2))
+                ax.text(x + 0.2, y + 0.3, label, color=color, fontsize=8)
     fig.tight_layout()
     fig.savefig(args[0], dpi=90)
     return 0
