@@ -186,3 +186,8 @@ def test_progress_counts_over_a_lap_and_success_needs_it():
         assert hops[-1] > w.world.length
         assert w.progress() == pytest.approx(hops[-1], abs=0.05)
         assert w.success()  # no contact and >= min_progress_m
+
+
+def test_too_many_traffic_cars_are_refused():
+    with pytest.raises(ValueError, match="traffic.min_gap_m"):
+        BulletWorld("racetrack", n_obstacles=63)

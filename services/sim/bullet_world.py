@@ -140,6 +140,11 @@ class BulletWorld:
         if tr is None and n_obstacles:
             raise ValueError("n_obstacles: only for scenarios with [traffic]")
         self.driver = traffic_driver or (make_driver(tr.driver) if tr else None)
+        if tr is not None:
+            gap = self.world.length / (self.n_traffic + 1)
+            if gap < tr.min_gap_m:
+                raise ValueError(f"traffic.min_gap_m: {self.n_traffic + 1} cars on {self.world.length:.1f} m "
+                                 f"leave {gap:.2f} m between cars, less than {tr.min_gap_m} m")
         self._seed = seed
         self.angles = ray_angles(self.spec)
         self._dirs = np.stack([np.cos(self.angles + self.car.lidar_mount.yaw),
