@@ -1,0 +1,366 @@
+"""The evaluation harness: trials run through the real processes over Zenoh.
+
+A :class:`Harness` starts a router, ``racecav sim`` (lockstep or realtime, holding at the end of
+each trial) and one controller service as separate processes, each a client of that router, then
+runs trials through the sim's ``scenario`` and ``reset`` queryables with one seed per trial. A
+:class:`Recorder` (a client session of the harness) listens to what is on the bus: the sim's
+VehicleState and ObstacleStates (ground truth for the trajectory and the distances), the scans
+and the commands (scan -> command latency, timed at the harness's arrival of each; the
+controller's own ``compute_ns``). Outcome, contact and progress come from the sim's status
+queryable at the end of the trial: the sim decides success exactly as in-process evaluation does.
+
+Trial i of a run uses seed ``base_seed + i``: the same seed gives the same obstacle start,
+speed and delay (Scenario.sample) whichever controller drives, and in lockstep mode the same
+trajectory for the same commands.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import threading
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from racecav.common import keys, procs
+from racecav.common.codec import DecodeError, decode
+from racecav.common.config import Config
+from racecav.common.messages import DriveCommand, ObstacleStates, Scan, VehicleState
+from racecav.evaluation import metrics
+from racecav.evaluation.results import Trajectory, Trial, stats
+
+
+@dataclass(frozen=True)
+class Controller:
+    """A controller the harness can evaluate: the racecav command that runs it."""
+
+    name: str
+    args: tuple[str, ...]
+    service: str
+    """Service name on the bus (liveliness/status key)."""
+    module: str
+    """Python module of the command (checked before starting)."""
+    model: Path | None = None
+    """Weights file the command needs, if any."""
+    label: str = ""
+
+
+def _policy_model(name: str) -> Path:
+    spec = importlib.util.find_spec("racecav.services.policy")
+    base = Path(spec.origin).parent if spec and spec.origin else Path(__file__).resolve().parents[1] / "services" / "policy"
+    return base / "models" / f"{name}.npz"
+
+
+CONTROLLERS: dict[str, Controller] = {
+    "drl-reversed": Controller("drl-reversed", ("policy", "--model", "reversed"), "policy",
+                               "racecav.services.policy.service", _policy_model("reversed"),
+                               "DRL reversed heading"),
+    "drl-default": Controller("drl-default", ("policy", "--model", "default"), "policy",
+                              "racecav.services.policy.service", _policy_model("default"), "DRL default"),
+    "mpc-apf": Controller("mpc-apf", ("baseline",), "baseline", "racecav.services.baseline.service",
+                          None, "MPC-APF"),
+    # Reference without evasion: straight ahead at the throttle that holds ~1 m/s. Shows that the
+    # scenarios are real conflicts, and lets the harness be tested before the controllers exist.
+    "scripted": Controller("scripted", ("scripted", "--program", "0.4,0.0,1000000"), "scripted",
+                           "racecav.services.sim.scripted", None, "no evasion (straight, scripted)"),
+}
+TABLE_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed")
+
+
+def missing(ctrl: Controller) -> str | None:
+    """Why ``ctrl`` cannot run here (a missing service module or weights file), or None."""
+    from racecav.cli import COMMANDS
+
+    if ctrl.args[0] not in COMMANDS or importlib.util.find_spec(ctrl.module) is None:
+        return f"the `racecav {ctrl.args[0]}` command ({ctrl.module}) is not installed yet"
+    if ctrl.model is not None and not ctrl.model.exists():
+        return f"the shipped weights {ctrl.model} do not exist yet"
+    return None
+
+
+class HarnessError(RuntimeError):
+    """A trial could not run (a process died, the bus stopped answering...)."""
+
+
+@dataclass
+class _Cmd:
+    scan_seq: int
+    arrival_ns: int
+    compute_ns: int
+
+
+@dataclass
+class Recorder:
+    """What the harness sees on the bus, indexed by seq (sim seqs are monotonic across trials)."""
+
+    session: object
+    car: str = "car0"
+    scans: dict[int, int] = field(default_factory=dict)
+    """scan seq -> arrival (monotonic ns) of its latest publication."""
+    cmds: list[_Cmd] = field(default_factory=list)
+    states: dict[int, VehicleState] = field(default_factory=dict)
+    obstacles: dict[int, ObstacleStates] = field(default_factory=dict)
+    bad: int = 0
+
+    def __post_init__(self):
+        self._cond = threading.Condition()
+        s = self.session
+        self._subs = [s.declare_subscriber(keys.topic(self.car, keys.SCAN), self._on_scan),
+                      s.declare_subscriber(keys.topic(self.car, keys.CMD), self._on_cmd),
+                      s.declare_subscriber(keys.topic(self.car, keys.STATE), self._on_state),
+                      s.declare_subscriber(keys.topic(self.car, keys.OBSTACLES), self._on_obstacles)]
+
+    def _decode(self, sample, cls):
+        try:
+            return decode(sample.payload.to_bytes(), cls)
+        except DecodeError:
+            self.bad += 1
+            return None
+
+    def _on_scan(self, sample) -> None:
+        now = time.monotonic_ns()
+        msg = self._decode(sample, Scan)
+        if msg is not None:
+            with self._cond:
+                self.scans[msg.seq] = now
+
+    def _on_cmd(self, sample) -> None:
+        now = time.monotonic_ns()
+        msg = self._decode(sample, DriveCommand)
+        if msg is not None:
+            with self._cond:
+                self.cmds.append(_Cmd(msg.scan_seq, now, msg.compute_ns))
+
+    def _on_state(self, sample) -> None:
+        msg = self._decode(sample, VehicleState)
+        if msg is not None:
+            with self._cond:
+                self.states[msg.seq] = msg
+                self._cond.notify_all()
+
+    def _on_obstacles(self, sample) -> None:
+        msg = self._decode(sample, ObstacleStates)
+        if msg is not None:
+            with self._cond:
+                self.obstacles[msg.seq] = msg
+                self._cond.notify_all()
+
+    def wait_for(self, pred, timeout: float) -> bool:
+        """Wait until ``pred(self)`` holds (checked on each state/obstacle arrival)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: pred(self), timeout)
+
+    def take(self, first: int, last: int):
+        """States, obstacles, scan arrivals and commands of seqs first..last; forget older ones."""
+        with self._cond:
+            states = [self.states[k] for k in range(first, last + 1) if k in self.states]
+            obs = [self.obstacles.get(s.seq) for s in states]
+            scans = {k: v for k, v in self.scans.items() if first <= k <= last}
+            cmds = [c for c in self.cmds if first <= c.scan_seq <= last]
+            for d in (self.states, self.obstacles, self.scans):
+                for k in [k for k in d if k <= last]:
+                    del d[k]
+            self.cmds = [c for c in self.cmds if c.scan_seq > last]
+        return states, obs, scans, cmds
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+
+
+class Harness:
+    """Router + sim + controller processes, and trials run through them (use as a context manager).
+
+    :param controller: what to evaluate (a :data:`CONTROLLERS` entry).
+    :param mode: sim mode: "lockstep" (deterministic, the controller's compute_ns is charged as
+        latency) or "realtime" (wall clock, the command applies when it arrives).
+    :param scenario: the first scenario (name or path), loaded when the sim starts.
+    :param log_dir: where the processes' logs go.
+    :param real_time_factor: realtime mode: sim seconds per wall second.
+    """
+
+    def __init__(self, cfg: Config, controller: Controller, mode: str, scenario: str, log_dir: Path,
+                 real_time_factor: float = 1.0):
+        self.cfg, self.ctrl, self.mode, self.log_dir = cfg, controller, mode, Path(log_dir)
+        self.first_scenario, self.rtf = scenario, real_time_factor
+        from racecav.common.vehicle import load_car
+
+        self.car = load_car(cfg.sim.car)
+        self.car_name = cfg.bus.car
+        self.procs: dict[str, object] = {}
+        self._stack = ExitStack()
+        self.scenario_ref: str | None = None
+        self.duration_s = 0.0
+
+    # ------------------------------------------------------------------ processes
+    def __enter__(self) -> "Harness":
+        why = missing(self.ctrl)
+        if why:
+            raise HarnessError(f"cannot evaluate {self.ctrl.name}: {why}")
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            endpoint = self._stack.enter_context(procs.router(log_path=self.log_dir / "router.log"))
+            from racecav.common.client import open_session
+            from racecav.common.config import load_config
+
+            self.session = open_session(load_config(environ={"RACECAV_BUS__CONNECT": f'["{endpoint}"]',
+                                                             "RACECAV_BUS__CAR": self.car_name}))
+            self._stack.callback(self.session.close)
+            self.recorder = Recorder(self.session, self.car_name)
+            self._stack.callback(self.recorder.close)
+            env = procs.bus_env(endpoint, self.car_name, extra={
+                "RACECAV_SIM__ON_END": "hold",
+                # a scan the controller missed (it subscribed late) is republished soon
+                "RACECAV_SIM__LOCKSTEP_TIMEOUT_S": "0.5",
+                "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf)})
+            self._start("sim", ["sim", "--scenario", str(self.first_scenario), "--mode", self.mode], env)
+            self._start(self.ctrl.service, list(self.ctrl.args), env)
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def _start(self, service: str, args: list[str], env: dict) -> None:
+        log = self.log_dir / f"{service}.log"
+        p = procs.start(args, env, log)
+        self.procs[service] = p
+        self._stack.callback(procs.stop, p)
+        try:
+            procs.wait_alive(self.session, self.car_name, service, timeout=60, proc=p)
+        except (RuntimeError, TimeoutError) as e:
+            raise HarnessError(f"{service}: {e}\n{_tail(log)}") from None
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()  # controller, sim, recorder, session, router: reverse order
+
+    def _check_procs(self) -> None:
+        for name, p in self.procs.items():
+            if p.poll() is not None:
+                raise HarnessError(f"{name} exited with code {p.returncode}\n{_tail(self.log_dir / f'{name}.log')}")
+
+    def status_info(self) -> dict:
+        from racecav.common.client import get_status
+
+        return get_status(self.session, self.car_name, "sim", timeout=5.0).info
+
+    def controller_status(self):
+        from racecav.common.client import get_status
+
+        return get_status(self.session, self.car_name, self.ctrl.service, timeout=5.0)
+
+    # ------------------------------------------------------------------ trials
+    def set_scenario(self, ref: str) -> None:
+        """Trials from now on use scenario ``ref`` (a name or a TOML path the sim can read)."""
+        from racecav.common.scenario import load_scenario
+
+        self.duration_s = load_scenario(ref).duration_s
+        self.scenario_ref = ref
+        self._need_scenario = True
+
+    def run_trial(self, index: int, seed: int, keep_trajectory: bool = True) -> Trial:
+        """Run one trial to its end (contact or the scenario's duration) and measure it."""
+        from racecav.common.client import query_message
+
+        if self.scenario_ref is None:
+            raise HarnessError("set_scenario() first")
+        self._check_procs()
+        wall0 = time.monotonic()
+        try:
+            if self._need_scenario:
+                rep = query_message(self.session, self.car_name, "sim", "scenario",
+                                    {"name": self.scenario_ref, "seed": seed}, timeout=30.0)
+                self._need_scenario = False
+            else:
+                rep = query_message(self.session, self.car_name, "sim", "reset", {"seed": seed}, timeout=15.0)
+        except RuntimeError as e:
+            self._check_procs()
+            raise HarnessError(f"trial {index}: {e}") from None
+        episode, first = rep["episode"], rep["seq"]
+        n_steps = int(round(self.duration_s / self.car.control_period_s))
+        # wall-time budget: realtime runs at rtf; lockstep at the speed of sim + controller
+        budget = 60.0 + (self.duration_s / self.rtf if self.mode == "realtime" and self.rtf > 0 else 0.0) + 1.0 * n_steps
+        deadline = time.monotonic() + budget
+
+        def ended(rec: Recorder) -> bool:
+            st = rec.states.get(max(rec.states, default=-1))
+            if st is None or st.seq < first or first not in rec.states:
+                return False
+            t = (st.stamp_ns - rec.states[first].stamp_ns) * 1e-9
+            return st.collided or t >= self.duration_s - 1e-6
+
+        while not self.recorder.wait_for(ended, timeout=0.5):
+            self._check_procs()
+            if time.monotonic() > deadline:
+                raise HarnessError(f"trial {index} (seed {seed}) did not end within {budget:.0f} s wall; "
+                                   f"sim status {self._safe_status()}")
+        # the sim's own verdict (its status is snapshotted right after the last state was published)
+        info: dict = {}
+        for _ in range(100):
+            info = self.status_info()
+            if info.get("episode") == episode and info.get("done"):
+                break
+            time.sleep(0.01)
+        else:
+            raise HarnessError(f"trial {index}: sim never reported the episode done: {info}")
+        last = int(info["seq"])
+        self.recorder.wait_for(lambda r: last in r.states and last in r.obstacles, timeout=2.0)
+        states, obs, scans, cmds = self.recorder.take(first, last)
+        return self._measure(index, seed, info, states, obs, scans, cmds, time.monotonic() - wall0,
+                             keep_trajectory)
+
+    def _safe_status(self) -> dict | str:
+        try:
+            return self.status_info()
+        except Exception as e:  # the status is only for the error message
+            return str(e)
+
+    def _measure(self, index, seed, info, states, obs, scans, cmds, wall_s, keep) -> Trial:
+        if not states:
+            raise HarnessError(f"trial {index}: no VehicleState received from the sim")
+        t0 = states[0].stamp_ns
+        t = np.array([(s.stamp_ns - t0) * 1e-9 for s in states])
+        ego = np.array([(s.x, s.y, s.yaw) for s in states])
+        # a lost ObstacleStates sample (rare) takes its neighbour's value
+        filled, prev = [], next((o for o in obs if o is not None), None)
+        for o in obs:
+            prev = o if o is not None else prev
+            filled.append(prev)
+        n_obs = min((len(o.obstacles) for o in filled if o is not None), default=0)
+        tracks, gaps, centres = [], [], []
+        for k in range(n_obs):
+            tr = np.array([(o.obstacles[k].x, o.obstacles[k].y, o.obstacles[k].yaw) for o in filled])
+            ob = filled[0].obstacles[k]
+            tracks.append(tr)
+            ca = metrics.box_corners(ego[:, 0], ego[:, 1], ego[:, 2], self.car.length, self.car.width)
+            cb = metrics.box_corners(tr[:, 0], tr[:, 1], tr[:, 2], ob.length, ob.width)
+            gaps.append(metrics.footprint_gap(ca, cb).min())
+            centres.append(np.hypot(ego[:, 0] - tr[:, 0], ego[:, 1] - tr[:, 1]).min())
+        latency = [(c.arrival_ns - scans[c.scan_seq]) * 1e-6 for c in cmds
+                   if c.scan_seq in scans and c.arrival_ns >= scans[c.scan_seq]]
+        compute = [c.compute_ns * 1e-6 for c in cmds]
+        traj = None
+        if keep:
+            r = lambda a: [tuple(round(float(v), 4) for v in row) for row in a]  # noqa: E731
+            traj = Trajectory(t=[round(float(v), 4) for v in t], ego=r(ego), obstacles=[r(tr) for tr in tracks])
+        collided = bool(info["collided"])
+        return Trial(index=index, seed=seed, success=bool(info["success"]), collided=collided,
+                     contact_with=str(info.get("contact_with") or ""),
+                     contact_time_s=float(info["t"]) if collided else None, end_time_s=float(info["t"]),
+                     progress_m=float(info["progress_m"]),
+                     min_gap_m=float(min(gaps)) if gaps else None,
+                     min_center_distance_m=float(min(centres)) if centres else None,
+                     steps=len(states), commands=len(cmds), latency_ms=stats(latency),
+                     compute_ms=stats(compute), wall_s=wall_s,
+                     latency_steps_ms=[round(v, 4) for v in latency],
+                     compute_steps_ms=[round(v, 4) for v in compute], trajectory=traj)
+
+
+def _tail(path: Path, n: int = 15) -> str:
+    try:
+        lines = Path(path).read_text(errors="replace").splitlines()[-n:]
+    except OSError:
+        return ""
+    return f"--- last lines of {path} ---\n" + "\n".join(lines)

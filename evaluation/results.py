@@ -1,0 +1,264 @@
+"""Evaluation results: the versioned JSON schema, per-trial JSONL records and the statistics.
+
+One evaluation run (a scenario x a controller, N seeded trials) is a :class:`RunResult`. Its
+JSON Schema is generated from these models and committed as docs/results-schema.json
+(``python -m racecav.evaluation.results --write-schema``; a test checks the file is current), so
+the document and the code cannot drift apart. Results are validated by
+:func:`validate_run` (pydantic: the same rules as the schema).
+
+While a run is going, every finished trial is appended as one line of JSON (a
+:class:`TrialRecord`: the run key + the trial) to a JSONL file, so an interrupted evaluation can
+be resumed (``--resume``) and a partial one is visible as such.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+SCHEMA_ID = "racecav.eval.run"
+SCHEMA_VERSION = 1
+SCHEMA_PATH = Path(__file__).resolve().parents[1] / "docs" / "results-schema.json"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Stats(_Strict):
+    """Summary of samples (milliseconds for latencies)."""
+
+    n: int = Field(ge=0)
+    median: float | None = None
+    p99: float | None = None
+    max: float | None = None
+
+
+class Trajectory(_Strict):
+    """Ground-truth poses of one trial, one row per control step (sim time)."""
+
+    t: list[float]
+    """Trial time (s) of each row."""
+    ego: list[tuple[float, float, float]]
+    """Ego x, y (m), yaw (rad), world frame."""
+    obstacles: list[list[tuple[float, float, float]]]
+    """Per obstacle car: x, y, yaw per row (same rows as ``t``)."""
+
+
+class Trial(_Strict):
+    """One trial."""
+
+    index: int = Field(ge=0)
+    """Position in the run (trial i uses seed = base_seed + i)."""
+    seed: int
+    success: bool
+    """No contact during the scenario's duration and at least its min_progress_m of progress."""
+    collided: bool
+    contact_with: str
+    """"" (no contact), "car<k>" (obstacle k), "wall", "ground" or "rollover"."""
+    contact_time_s: float | None
+    """Trial time of the first contact; null without contact."""
+    end_time_s: float
+    """Trial time when it ended (contact or the scenario's duration)."""
+    progress_m: float
+    """Ego progress along its initial heading (roads) or the centerline (loops)."""
+    min_gap_m: float | None
+    """Minimum distance between the ego's and any obstacle car's footprints (0 = touching);
+    null when the scenario has no obstacle cars."""
+    min_center_distance_m: float | None
+    """Minimum centre-to-centre distance to any obstacle car."""
+    steps: int = Field(ge=0)
+    """Control steps (scans) in the trial."""
+    commands: int = Field(ge=0)
+    """Commands seen answering this trial's scans."""
+    latency_ms: Stats
+    """Scan -> command: arrival of a scan to arrival of the command answering it (scan_seq),
+    both timed by the harness on the bus (so it includes the controller's Zenoh hops)."""
+    compute_ms: Stats
+    """The controller's own compute time (DriveCommand.compute_ns)."""
+    wall_s: float
+    """Wall time the trial took."""
+    latency_steps_ms: list[float] = []
+    """Every step's scan -> command latency (ms), for run-level percentiles."""
+    compute_steps_ms: list[float] = []
+    """Every step's compute_ns in ms."""
+    trajectory: Trajectory | None = None
+
+
+class TrialRecord(_Strict):
+    """One line of the JSONL progress file: the run it belongs to, and the trial."""
+
+    run_key: str
+    trial: Trial
+
+
+class ScenarioInfo(_Strict):
+    name: str
+    ref: str
+    """What was asked for: a shipped name or a file path."""
+    digest: str
+    """sha256 of the scenario file, so results of an edited file are not mixed."""
+    duration_s: float
+
+
+class ControllerInfo(_Strict):
+    name: str
+    """drl-reversed, drl-default, mpc-apf or scripted."""
+    command: list[str]
+    """The racecav command line that ran it."""
+    service: str
+
+
+class Summary(_Strict):
+    trials: int = Field(ge=0)
+    successes: int = Field(ge=0)
+    success_rate: float | None
+    ci95: tuple[float, float] | None
+    """95 % Wilson score interval of the success rate."""
+    collisions: int = Field(ge=0)
+    mean_progress_m: float | None
+    median_min_gap_m: float | None
+    latency_ms: Stats
+    """Over every step of every trial."""
+    compute_ms: Stats
+
+
+class RunResult(_Strict):
+    """An evaluation run: ``racecav eval --scenario S --controller C``."""
+
+    schema_id: Literal["racecav.eval.run"] = SCHEMA_ID
+    schema_version: Literal[1] = SCHEMA_VERSION
+    created_utc: str
+    git_commit: str
+    machine: str
+    scenario: ScenarioInfo
+    controller: ControllerInfo
+    mode: Literal["lockstep", "realtime"]
+    base_seed: int
+    trials_requested: int = Field(ge=0)
+    complete: bool
+    """False when fewer than trials_requested trials finished (interrupted or failed)."""
+    stopped_reason: str = ""
+    """Why a partial run stopped (interrupt, error text)."""
+    wall_s: float
+    summary: Summary
+    trials: list[Trial]
+
+
+def json_schema() -> dict:
+    """The JSON Schema (draft 2020-12) of a results file."""
+    schema = RunResult.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["$id"] = f"https://racecav/{SCHEMA_ID}/{SCHEMA_VERSION}"
+    schema["description"] = ("Results of `racecav eval` (one scenario x one controller). "
+                             "Generated from racecav.evaluation.results; do not edit by hand.")
+    return schema
+
+
+def validate_run(data: dict | str | Path) -> RunResult:
+    """Parse and validate a results file or dict.
+
+    :raises ValueError: naming the invalid field(s).
+    """
+    if isinstance(data, (str, Path)):
+        data = json.loads(Path(data).read_text())
+    try:
+        return RunResult.model_validate(data)
+    except ValidationError as e:
+        errs = "; ".join(f"{'.'.join(str(p) for p in x['loc'])}: {x['msg']}" for x in e.errors()[:5])
+        raise ValueError(f"results do not match schema {SCHEMA_ID} v{SCHEMA_VERSION}: {errs}") from None
+
+
+# ---------------------------------------------------------------------------- statistics
+
+def wilson(successes: int, n: int, z: float = 1.959964) -> tuple[float, float] | None:
+    """95 % Wilson score interval of a binomial proportion (good for small n and p near 0/1)."""
+    if n <= 0:
+        return None
+    p = successes / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def stats(samples) -> Stats:
+    a = np.asarray(list(samples), dtype=float)
+    if a.size == 0:
+        return Stats(n=0)
+    return Stats(n=int(a.size), median=float(np.median(a)), p99=float(np.percentile(a, 99)),
+                 max=float(a.max()))
+
+
+def summarize(trials: list[Trial]) -> Summary:
+    """Summary of finished trials (latencies pooled over every step of every trial)."""
+    n = len(trials)
+    ok = sum(t.success for t in trials)
+    gaps = [t.min_gap_m for t in trials if t.min_gap_m is not None]
+    latencies_ms = [v for t in trials for v in t.latency_steps_ms]
+    computes_ms = [v for t in trials for v in t.compute_steps_ms]
+    return Summary(trials=n, successes=ok, success_rate=ok / n if n else None, ci95=wilson(ok, n),
+                   collisions=sum(t.collided for t in trials),
+                   mean_progress_m=float(np.mean([t.progress_m for t in trials])) if n else None,
+                   median_min_gap_m=float(np.median(gaps)) if gaps else None,
+                   latency_ms=stats(latencies_ms), compute_ms=stats(computes_ms))
+
+
+# ---------------------------------------------------------------------------- JSONL progress
+
+def file_digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def run_key(scenario_digest: str, controller: str, mode: str, base_seed: int) -> str:
+    """What makes two runs' trials interchangeable (a resumed run must match it)."""
+    return f"{controller}|{mode}|seed{base_seed}|{scenario_digest[:16]}"
+
+
+def read_jsonl(path: Path, key: str) -> dict[int, Trial]:
+    """Finished trials of a progress file, by index.
+
+    :raises ValueError: when a line belongs to another run or is malformed (a torn last line,
+        from a kill mid-write, is ignored).
+    """
+    done: dict[int, Trial] = {}
+    if not path.exists():
+        return done
+    lines = path.read_text().splitlines()
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            rec = TrialRecord.model_validate_json(line)
+        except ValidationError as e:
+            if i == len(lines) - 1:
+                continue  # torn last line: that trial is simply run again
+            raise ValueError(f"{path}:{i + 1}: not a trial record: {e.errors()[0]['msg']}") from None
+        if rec.run_key != key:
+            raise ValueError(f"{path}:{i + 1}: belongs to run {rec.run_key!r}, not {key!r} "
+                             "(different controller, mode, seed or scenario file); use another --jsonl "
+                             "or drop --resume to start over")
+        done[rec.trial.index] = rec.trial
+    return done
+
+
+def append_jsonl(path: Path, key: str, trial: Trial) -> None:
+    with open(path, "a") as f:
+        f.write(TrialRecord(run_key=key, trial=trial).model_dump_json() + "\n")
+        f.flush()
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] == ["--write-schema"]:
+        SCHEMA_PATH.write_text(json.dumps(json_schema(), indent=2) + "\n")
+        print(f"wrote {SCHEMA_PATH}")
+    else:
+        print(json.dumps(json_schema(), indent=2))
