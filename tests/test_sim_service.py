@@ -38,8 +38,9 @@ class States:
             self.items.append(decode(sample.payload.to_bytes(), VehicleState))
 
     def snapshot(self) -> list[VehicleState]:
+        """States in seq order, one per seq (a republished first scan repeats its state)."""
         with self._lock:
-            return list(self.items)
+            return sorted({s.seq: s for s in self.items}.values(), key=lambda s: s.seq)
 
     def wait(self, pred, timeout: float) -> list[VehicleState]:
         deadline = time.monotonic() + timeout
@@ -62,8 +63,9 @@ def test_scripted_controller_drives_the_sim_car(spawn, session, tmp_path):
     procs.wait_alive(session, "car0", "scripted", proc=ctl)
     assert {"sim", "scripted"} <= set(live_services(session, "car0"))
     items = states.wait(lambda s: len(s) > 24, timeout=20)
+    assert items[0].seq == 0  # subscribed before the controller started the clock
     x0 = items[0].x
-    straight = [s for s in items[:16]]
+    straight = items[:16]  # state k follows k periods; commands 0-14 drive straight
     assert straight[-1].x - x0 > 0.5  # it drove forward ...
     assert max(abs(s.y) for s in straight) < 0.05 and max(abs(s.yaw) for s in straight) < 0.05  # ... straight
     turned = items[24]

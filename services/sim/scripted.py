@@ -58,6 +58,7 @@ class ScriptedController(Service):
         self.program, self.then, self.compute_ms, self.sleep_ms = program, then, compute_ms, sleep_ms
         self.source, self.car_params = source, load_car(car)
         self.answered = 0
+        self._last_seq = -1
 
     def setup(self) -> None:
         self.scans = self.inbox(self.topic(keys.SCAN), Scan)
@@ -76,8 +77,12 @@ class ScriptedController(Service):
         if scan is None:
             return
         t0 = time.perf_counter_ns()
+        repeat = scan.seq == self._last_seq  # a republished scan: answer it again, do not advance
+        if repeat:
+            self.answered -= 1
         action = self._action()
         if action is None:
+            self.answered += repeat
             return
         if self.sleep_ms:
             time.sleep(self.sleep_ms / 1000)
@@ -88,6 +93,7 @@ class ScriptedController(Service):
                                   steering_angle=float(steer_from_action(a_s, self.car_params)),
                                   scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=compute_ns))
         self.answered += 1
+        self._last_seq = scan.seq
 
     def info(self) -> dict:
         return {"answered": self.answered, "program_scans": sum(n for *_, n in self.program)}
