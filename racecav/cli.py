@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),
     "emulate": ("racecav.services.emulate", "device emulators on a pty: rplidar | vesc"),
     "sim": ("racecav.services.sim.service", "PyBullet world playing the car: Scan/state out, DriveCommand in (realtime or lockstep)"),
+    "deploy": ("racecav.deploy.command", "install on the car (venv, systemd units, udev, config) and make bus credentials"),
     "scripted": ("racecav.services.sim.scripted", "controller answering each scan with a scripted command program (tests, demos)"),
 }
 
