@@ -537,8 +537,12 @@ class BulletWorld:
         self.steer[i] = self.steer_target[i] = steer
         for j in c.steer_joints:
             self.bc.resetJointState(c.body, j, steer, 0.0)
-        self._set_speed(i, v) if v > 0 else self.bc.resetBaseVelocity(c.body, [0, 0, 0], [0, 0, 0])
-        if v <= 0:
+        if v > 0:
+            self._set_speed(i, v)
+        else:
+            self.bc.resetBaseVelocity(c.body, [0, 0, 0], [0, 0, 0])
+            for j in c.wheel_joints:
+                self.bc.resetJointState(c.body, j, 0.0, 0.0)
             self.w[i] = 0.0
         if i == 0 and self.world.centerline is not None:
             self._last_s = float(self.world.progress(x, y))
