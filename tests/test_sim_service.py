@@ -123,3 +123,13 @@ def test_reset_and_scenario_queryables(spawn, session, tmp_path):
     with pytest.raises(RuntimeError, match="reset.seed"):
         query_message(session, "car0", "sim", "reset", {"seed": "x"})
     assert get_status(session, "car0", "sim").info["scenario"] == "left-to-right"
+
+
+def test_broken_scenario_file_exits_2_naming_the_field(tmp_path):
+    import subprocess
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text(EMPTY_CROSSING.replace("speed = 0.0", "speed = -2.0"))
+    out = subprocess.run(procs.racecav_cmd("sim", "--scenario", str(bad)), capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "ego.speed" in out.stdout + out.stderr
