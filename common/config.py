@@ -184,6 +184,8 @@ class SimConfig(Section):
     """Override the racetrack scenario's agent heading."""
     car: str = "slash"
     """Car file (common/data/cars)."""
+    lidar_range_max: float | None = Field(None, gt=0)
+    """Override the car file's lidar range (m); None = the car's (12 m)."""
     publish_obstacles: bool = True
     """Publish ground-truth ObstacleStates every step."""
 

@@ -107,7 +107,10 @@ class SimService(Service):
     def _make_world(self, scenario):
         from racecav.services.sim.bullet_world import BulletWorld  # pybullet: only when running
 
-        return BulletWorld(scenario, car=self.car_params, lidar_all=self.scfg.lidar_all,
+        spec = self.car_params.lidar
+        if self.scfg.lidar_range_max is not None:
+            spec = type(spec).model_validate({**spec.model_dump(), "range_max": self.scfg.lidar_range_max})
+        return BulletWorld(scenario, car=self.car_params, lidar_all=self.scfg.lidar_all, lidar=spec,
                            heading=self.scfg.heading if scenario.traffic else None)
 
     def _new_episode(self, seed: int, heading: str | None = None) -> None:
