@@ -112,8 +112,11 @@ class ActuatorConfig(Section):
     """The only source accepted on the cmd key (policy, baseline, ...); others are refused."""
     teleop_source: str = Field("teleop", min_length=1)
     """Source accepted on the teleop key; it overrides the controller while fresh."""
-    timeout_s: float = Field(0.1, gt=0)
-    """Watchdog: no fresh command for this long => motor neutral/brake and steering centred."""
+    timeout_s: float = Field(0.25, gt=0)
+    """Watchdog: no fresh command for this long => motor neutral/brake and steering centred.
+    2.5 control periods: commands come at the S2's ~10 Hz scan rate, so a 100 ms timeout would
+    brake between two on-time commands whenever one is a little late (measured: 5 brake
+    episodes in 2 s of driving). Set 0.1 for a controller running faster than 10 Hz."""
     teleop_hold_s: float = Field(0.5, ge=0)
     """After a teleop command, controller commands are ignored for this long (priority mux)."""
     rate_hz: float = Field(50.0, gt=0)

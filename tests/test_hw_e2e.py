@@ -70,7 +70,7 @@ def test_emulated_vesc_neutral_when_controller_dies(spawn, session, tmp_path):
     link, log = tmp_path / "vesc", tmp_path / "vesc.jsonl"
     spawn("emulate", "vesc", "--link", str(link), "--log", str(log), "--quiet")
     assert wait_until(link.exists)
-    p = spawn("actuator", "--port", str(link))
+    p = spawn("actuator", "--port", str(link), env={"RACECAV_ACTUATOR__TIMEOUT_S": "0.1"})
     procs.wait_alive(session, CAR, "actuator", proc=p)
     pub = session.declare_publisher(keys.topic(CAR, keys.CMD), express=True)
     for k in range(25):  # the "controller": 50 Hz, then it dies

@@ -138,6 +138,7 @@ def wait_until(pred, timeout=10.0, step=0.01):
 
 
 def start_actuator(spawn, session, vesc, **env):
+    env.setdefault("timeout_s", 0.1)  # the 100 ms watchdog, timed below
     env = {f"RACECAV_ACTUATOR__{k.upper()}": str(v) for k, v in env.items()}
     p = spawn("actuator", "--port", vesc.path, env=env)
     procs.wait_alive(session, CAR, "actuator", proc=p)

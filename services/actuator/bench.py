@@ -35,7 +35,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     with tempfile.TemporaryDirectory() as tmp, procs.router(log_path=Path(tmp) / "router.log") as ep:
         emu = VescEmulator(link=Path(tmp) / "vesc").start()
         bus = load_config(environ={"RACECAV_BUS__CONNECT": f'["{ep}"]'})
-        act = procs.start(["actuator", "--port", emu.path], procs.bus_env(ep), Path(tmp) / "actuator.log")
+        act = procs.start(["actuator", "--port", emu.path], procs.bus_env(ep, extra={"RACECAV_ACTUATOR__TIMEOUT_S": "0.1"}), Path(tmp) / "actuator.log")
         session = open_session(bus)
         try:
             procs.wait_alive(session, car, "actuator", proc=act)
