@@ -19,12 +19,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "echo": ("racecav.common.echo", "print decoded messages of a key, like `ros2 topic echo`"),
     "bench": ("racecav.common.bench", "benchmarks: results go to docs/benchmarks.md"),
     "demo": ("racecav.evaluation.demo", "the README's main command"),
+    "eval": ("racecav.evaluation.evaluate", "evaluation over the real services: success, distances, latency; --table writes docs/results.md"),
     "sensor": ("racecav.services.sensor.service", "real lidar: RPLIDAR S2 driver publishing 170-ray Scans"),
     "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),
     "emulate": ("racecav.services.emulate", "device emulators on a pty: rplidar | vesc"),
     "sim": ("racecav.services.sim.service", "PyBullet world playing the car: Scan/state out, DriveCommand in (realtime or lockstep)"),
+    "train": ("racecav.training.train", "PPO training of the racing/overtaking policies (resumable), checkpoint selection, shipping, report"),
     "deploy": ("racecav.deploy.command", "install on the car (venv, systemd units, udev, config) and make bus credentials"),
     "scripted": ("racecav.services.sim.scripted", "controller answering each scan with a scripted command program (tests, demos)"),
+    "policy": ("racecav.services.policy.service", "DRL policy controller: newest Scan -> numpy MLP -> DriveCommand"),
+    "baseline": ("racecav.services.baseline.service", "MPC-APF baseline controller: lidar obstacles + casadi MPC -> DriveCommand"),
 }
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
@@ -33,7 +37,9 @@ BENCHES: dict[str, tuple[str, str]] = {
     "vesc": ("racecav.services.actuator.bench", "DriveCommand-to-VESC latency and watchdog reaction, timed at the emulator"),
     "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
     "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency through the router, status queries, codec"),
+    "train": ("racecav.training.bench_train", "PPO samples/s: the paper's setting vs more envs per rollout, larger minibatches, fewer epochs"),
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
+    "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
 }
 
 

@@ -1,0 +1,432 @@
+"""``racecav train select|ship|report``: checkpoint evaluation, shipping and the results page.
+
+- ``select --run-dir DIR``: every checkpoint (or the last ``--last K``) of a run is evaluated on
+  held-out seeds of its own training env (fast world: mean return, contact rate) and on the three
+  intersection scenarios in-process on the PyBullet backend (success = no contact and ego
+  progress >= the scenario's min_progress_m). Writes ``DIR/eval.csv`` and ``DIR/eval.png`` and
+  names the best: highest mean intersection success, ties broken by the held-out return (the
+  paper picked its checkpoints by evaluation too). Selection seeds (SELECT_SEED + k) differ from
+  the report's (REPORT_SEED + k), so the reported rates are not the ones the pick was made on.
+- ``ship --run-dir DIR --checkpoint best|latest|STEP --name racing|default|reversed``: writes
+  services/policy/models/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
+  settings and evaluation to training/checkpoints/RUN/ (committed: the report and ``--resume``
+  across sessions need them).
+- ``report``: >= 100 trials per scenario for each shipped policy, learning curves, throughput,
+  wall time -> docs/training.md (+ docs/img/training_*.png); results also go into the policies'
+  JSON metadata.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import math
+import shutil
+import time
+from pathlib import Path
+
+log = logging.getLogger("racecav.train")
+
+SCENARIOS = ("right-to-left", "head-to-head", "left-to-right")
+SELECT_SEED = 100_000
+REPORT_SEED = 0
+HELDOUT_SEED = 900_000
+REPO = Path(__file__).resolve().parent.parent
+COMMITTED = REPO / "training" / "checkpoints"
+PAPER_HW = {"reversed": (80, 60, 70), "default": (80, 30, 70), "mpc-apf": (70, 10, 60)}
+
+
+def add_subcommands(sub) -> None:
+    p = sub.add_parser("select", help="evaluate a run's checkpoints (held-out env seeds + PyBullet intersection scenarios), pick the best")
+    p.add_argument("--run-dir", type=Path, required=True)
+    p.add_argument("--trials", type=int, default=30, help="PyBullet trials per scenario and checkpoint")
+    p.add_argument("--episodes", type=int, default=64, help="held-out episodes in the training env")
+    p.add_argument("--last", type=int, help="only the last K checkpoints")
+    p.add_argument("--every", type=int, default=1, help="every k-th checkpoint (the last always)")
+    p.add_argument("--no-intersection", action="store_true", help="held-out env only (racing stage)")
+    p.set_defaults(stage="select")
+    p = sub.add_parser("ship", help="export a checkpoint as services/policy/models/NAME.{npz,json,zip}")
+    p.add_argument("--run-dir", type=Path, required=True)
+    p.add_argument("--checkpoint", default="best", help="best (from eval.csv) | latest | STEP")
+    p.add_argument("--name", required=True, help="racing | default | reversed (or any file name)")
+    p.set_defaults(stage="ship")
+    p = sub.add_parser("report", help="evaluate the shipped policies (>= 100 PyBullet trials per scenario) -> docs/training.md")
+    p.add_argument("--trials", type=int, default=100)
+    p.add_argument("--policies", default="racing,default,reversed")
+    p.add_argument("--reuse", action="store_true", help="reuse the evaluation stored in the metadata")
+    p.set_defaults(stage="report")
+
+
+def run(args, cfg) -> int:
+    return {"select": select, "ship": ship, "report": report}[args.train_cmd](args, cfg)
+
+
+# ----------------------------------------------------------------------------------- evaluation
+def policy_from_checkpoint(zip_path: Path):
+    """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present)."""
+    import pickle
+
+    from stable_baselines3 import PPO
+
+    from racecav.services.policy.model import NumpyPolicy, policy_arrays_from_sb3
+
+    model = PPO.load(zip_path, device="cpu")
+    arrays = policy_arrays_from_sb3(model)
+    vn = zip_path.with_suffix(".vecnorm.pkl")
+    if vn.is_file():
+        with vn.open("rb") as f:
+            norm = pickle.load(f)
+        arrays.update(obs_mean=norm.obs_rms.mean, obs_var=norm.obs_rms.var,
+                      obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
+    return NumpyPolicy(arrays)
+
+
+def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) -> dict:
+    """One episode in each of ``episodes`` fast worlds of the run's env (held-out seed)."""
+    import numpy as np
+
+    from racecav.training.vec_env import FastVecEnv
+
+    env = FastVecEnv(n_envs=episodes, heading=settings["heading"], n_obstacles=settings["n_obstacles"],
+                     driver=settings["driver"], time_limit=settings.get("time_limit"), seed=seed)
+    obs = env.reset()
+    ret = np.zeros(episodes)
+    done = np.zeros(episodes, bool)
+    contact = np.zeros(episodes, bool)
+    length = np.zeros(episodes)
+    prog = np.zeros(episodes)
+    lap = env.world.world.length
+    sign = -1.0 if settings["heading"] == "reversed" else 1.0
+    s_prev = env.world.progress()
+    while not done.all():
+        obs, r, d, infos = env.step(policy(obs))
+        live = ~done
+        ret[live] += r[live]
+        length[live] += 1
+        s = env.world.progress()  # (after a reset of a done world: ignored, it is not live)
+        ds = (s - s_prev + lap / 2) % lap - lap / 2
+        prog[live & ~d] += sign * ds[live & ~d]
+        s_prev = s
+        for i in np.flatnonzero(d & live):
+            contact[i] = not infos[i].get("TimeLimit.truncated", False)
+        done |= d
+    return {"env_return": float(ret.mean()), "env_contact_rate": float(contact.mean()),
+            "env_ep_len": float(length.mean()), "env_progress": float(prog.mean())}
+
+
+def eval_scenario(policy, scenario: str, trials: int, seed0: int) -> dict:
+    """In-process PyBullet trials of one intersection scenario: success, contact, progress."""
+    from racecav.services.sim.bullet_world import BulletWorld
+
+    bw = BulletWorld(scenario)
+    dur = bw.scenario.duration_s
+    ok = contact = 0
+    prog = []
+    try:
+        for k in range(trials):
+            obs = bw.reset(seed=seed0 + k)
+            collided = False
+            while bw.t < dur - 1e-9 and not collided:
+                obs, _, col, _ = bw.step(policy(obs[0]))
+                collided = bool(col[0])
+            ok += bw.success()
+            contact += collided
+            prog.append(bw.progress())
+    finally:
+        bw.close()
+    return {"success": ok / trials, "contact": contact / trials,
+            "progress": sum(prog) / len(prog), "trials": trials}
+
+
+def _checkpoints(run_dir: Path) -> list[Path]:
+    return sorted((run_dir / "checkpoints").glob("step_*.zip"))
+
+
+def _step(path: Path) -> int:
+    return int(path.stem.split("_")[1])
+
+
+def select(args, cfg) -> int:
+    import torch
+    from tqdm import tqdm
+
+    torch.set_num_threads(1)
+    run_dir = args.run_dir
+    settings = json.loads((run_dir / "config.json").read_text())
+    cks = _checkpoints(run_dir)
+    if not cks:
+        log.error("no checkpoints in %s", run_dir / "checkpoints")
+        return 2
+    picked = cks[::-1][::max(1, args.every)][::-1]
+    if args.last:
+        picked = picked[-args.last:]
+    out = run_dir / "eval.csv"
+    done = {}
+    if out.is_file():  # resumable: keep rows already evaluated with the same trial count
+        with out.open() as f:
+            done = {int(r["timesteps"]): r for r in csv.DictReader(f)}
+    fields = ["timesteps", "checkpoint", "env_return", "env_contact_rate", "env_ep_len", "env_progress"]
+    if not args.no_intersection:
+        fields += [f"{s}_{m}" for s in SCENARIOS for m in ("success", "contact", "progress")]
+        fields += ["intersection_success", "trials"]
+    rows = []
+    for ck in tqdm(picked, desc=f"select {run_dir.name}", unit="ckpt"):
+        n = _step(ck)
+        prev = done.get(n)
+        if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
+            rows.append(prev)
+            continue
+        pol = policy_from_checkpoint(ck)
+        row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, settings, args.episodes)}
+        if not args.no_intersection:
+            rates = []
+            for sc in SCENARIOS:
+                r = eval_scenario(pol, sc, args.trials, SELECT_SEED)
+                row.update({f"{sc}_success": r["success"], f"{sc}_contact": r["contact"],
+                            f"{sc}_progress": round(r["progress"], 3)})
+                rates.append(r["success"])
+            row["intersection_success"] = sum(rates) / len(rates)
+            row["trials"] = args.trials
+        rows.append(row)
+        _write_csv(out, fields, rows)
+        log.info("%s: %s", ck.name, {k: row[k] for k in fields[2:]})
+    rows.sort(key=lambda r: int(r["timesteps"]))
+    _write_csv(out, fields, rows)
+    best = pick_best(rows, not args.no_intersection)
+    (run_dir / "best.json").write_text(json.dumps(best, indent=2, default=str) + "\n")
+    _plot_eval(rows, run_dir / "eval.png", run_dir.name, not args.no_intersection)
+    print(f"best checkpoint of {run_dir}: {best['checkpoint']} ({_fmt_row(best)})")
+    return 0
+
+
+def pick_best(rows: list[dict], intersection: bool) -> dict:
+    """Highest mean intersection success, then highest held-out return (racing: return only)."""
+    def key(r):
+        return ((float(r["intersection_success"]) if intersection else 0.0), float(r["env_return"]))
+    return max(rows, key=key)
+
+
+def _fmt_row(r: dict) -> str:
+    parts = [f"env return {float(r['env_return']):.0f}, contact {100 * float(r['env_contact_rate']):.0f} %"]
+    if "intersection_success" in r and r.get("intersection_success") not in (None, ""):
+        parts.append("success " + "/".join(f"{100 * float(r[f'{s}_success']):.0f}" for s in SCENARIOS) + " %")
+    return ", ".join(parts)
+
+
+def _write_csv(path: Path, fields: list[str], rows: list[dict]) -> None:
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _plot_eval(rows: list[dict], path: Path, title: str, intersection: bool) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [int(r["timesteps"]) / 1e6 for r in rows]
+    fig, ax = plt.subplots(1, 2 if intersection else 1, figsize=(11 if intersection else 6, 4), squeeze=False)
+    ax[0, 0].plot(x, [float(r["env_return"]) for r in rows], "o-")
+    ax[0, 0].set(xlabel="samples (M)", ylabel="held-out episode return", title=f"{title}: training env")
+    if intersection:
+        for sc in SCENARIOS:
+            ax[0, 1].plot(x, [100 * float(r[f"{sc}_success"]) for r in rows], "o-", label=sc)
+        ax[0, 1].set(xlabel="samples (M)", ylabel="success (%)", ylim=(-5, 105),
+                     title=f"{title}: PyBullet intersection ({rows[-1].get('trials')} trials)")
+        ax[0, 1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------- shipping
+def ship(args, cfg) -> int:
+    from stable_baselines3 import PPO
+
+    from racecav.services.policy.model import MODELS_DIR, export_policy
+
+    run_dir = args.run_dir
+    settings = json.loads((run_dir / "config.json").read_text())
+    evals = {}
+    if (run_dir / "eval.csv").is_file():
+        with (run_dir / "eval.csv").open() as f:
+            evals = {int(r["timesteps"]): r for r in csv.DictReader(f)}
+    if args.checkpoint == "best":
+        best = json.loads((run_dir / "best.json").read_text())
+        ck = run_dir / "checkpoints" / best["checkpoint"]
+    elif args.checkpoint == "latest":
+        ck = _checkpoints(run_dir)[-1]
+    else:
+        ck = run_dir / "checkpoints" / f"step_{int(float(args.checkpoint)):09d}.zip"
+    if not ck.is_file():
+        log.error("ship: no checkpoint %s", ck)
+        return 2
+    model = PPO.load(ck, device="cpu")
+    norm = None
+    vn = ck.with_suffix(".vecnorm.pkl")
+    if vn.is_file():
+        import pickle
+
+        with vn.open("rb") as f:
+            norm = pickle.load(f)
+    n = _step(ck)
+    latest = json.loads((run_dir / "latest.json").read_text()) if (run_dir / "latest.json").is_file() else {}
+    meta = {"name": args.name, "training_steps": n, "run": run_dir.name, "checkpoint": ck.name,
+            "seed": settings["seed"], "settings": settings, "git_commit_training": settings.get("git_commit"),
+            "run_total_steps": latest.get("timesteps"), "run_wall_s": latest.get("wall_s"),
+            "selection": evals.get(n), "observation": "sanitised lidar ranges (common/lidar.sanitize), 170, m",
+            "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"}
+    dst = MODELS_DIR / f"{args.name}.npz"
+    export_policy(model, dst, meta, obs_rms=norm.obs_rms if norm else None,
+                  clip_obs=norm.clip_obs if norm else 10.0, epsilon=norm.epsilon if norm else 1e-8)
+    shutil.copyfile(ck, dst.with_suffix(".zip"))
+    if vn.is_file():
+        shutil.copyfile(vn, MODELS_DIR / f"{args.name}.vecnorm.pkl")
+    save_run_record(run_dir)
+    print(f"shipped {ck} as {dst} (+ .json, .zip)")
+    return 0
+
+
+def save_run_record(run_dir: Path) -> Path:
+    """Copy what the report and a resume need into training/checkpoints/<run>/ (committed)."""
+    dst = COMMITTED / run_dir.name
+    dst.mkdir(parents=True, exist_ok=True)
+    for name in ("config.json", "progress.csv", "eval.csv", "eval.png", "best.json",
+                 "latest.json", "latest.zip", "latest.vecnorm.pkl"):
+        if (run_dir / name).is_file():
+            shutil.copyfile(run_dir / name, dst / name)
+    return dst
+
+
+# ----------------------------------------------------------------------------------- report
+def report(args, cfg) -> int:
+    import torch
+
+    from racecav.services.policy.model import MODELS_DIR, load_policy
+
+    torch.set_num_threads(1)
+    names = [n for n in args.policies.split(",") if (MODELS_DIR / f"{n}.npz").is_file()]
+    results = {}
+    t0 = time.time()
+    for name in names:
+        pol = load_policy(name)
+        meta_path = MODELS_DIR / f"{name}.json"
+        meta = json.loads(meta_path.read_text())
+        stored = meta.get("evaluation", {})
+        if args.reuse and stored.get("trials") == args.trials:
+            results[name] = stored
+            continue
+        res = {"trials": args.trials, "seed0": REPORT_SEED, "backend": "pybullet"}
+        for sc in SCENARIOS:
+            r = eval_scenario(pol, sc, args.trials, REPORT_SEED)
+            res[sc] = r
+            log.info("%s %s: %s", name, sc, r)
+        res["measured"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+        results[name] = res
+        meta["evaluation"] = res
+        meta_path.write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
+    curves = _plot_curves()
+    doc = REPO / "docs" / "training.md"
+    doc.write_text(_markdown(results, curves, time.time() - t0))
+    print(f"wrote {doc}")
+    return 0
+
+
+def _runs() -> dict[str, dict]:
+    out = {}
+    for d in sorted(COMMITTED.glob("*")):
+        if not (d / "progress.csv").is_file():
+            continue
+        with (d / "progress.csv").open() as f:
+            rows = list(csv.DictReader(f))
+        cfgd = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
+        out[d.name] = {"rows": rows, "config": cfgd, "dir": d}
+    return out
+
+
+def _plot_curves() -> dict[str, dict]:
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = _runs()
+    stats = {}
+    if not runs:
+        return stats
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4))
+    for name, r in runs.items():
+        rows = [x for x in r["rows"] if x.get("ep_rew_mean") not in ("", None)]
+        x = [int(float(x["timesteps"])) / 1e6 for x in rows]
+        ax[0].plot(x, [float(x_["ep_rew_mean"]) for x_ in rows], label=name)
+        ax[1].plot(x, [float(x_["ep_len_mean"]) * 0.1 for x_ in rows], label=name)
+        sps = [float(x_["samples_per_s"]) for x_ in r["rows"][1:] if x_.get("samples_per_s")]
+        last = r["rows"][-1] if r["rows"] else {}
+        stats[name] = {"samples": int(float(last.get("timesteps", 0))), "wall_s": float(last.get("wall_s") or 0),
+                       "samples_per_s_median": float(np.median(sps)) if sps else float("nan"),
+                       "config": r["config"]}
+    ax[0].set(xlabel="samples (M)", ylabel="mean episode return (last 100)", title="learning curves")
+    ax[1].set(xlabel="samples (M)", ylabel="mean episode length (s)", title="episode length (time limit 60 s)")
+    for a in ax:
+        a.legend()
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    img = REPO / "docs" / "img" / "training_curves.png"
+    img.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(img, dpi=100)
+    plt.close(fig)
+    return stats
+
+
+def _markdown(results: dict, curves: dict, eval_s: float) -> str:
+    L = ["# Training the racing, default and reversed-heading policies",
+         "",
+         "Generated by `racecav train report` (do not edit by hand; the text around the numbers",
+         "lives in training/select.py and docs/training_notes.md).",
+         ""]
+    notes = REPO / "docs" / "training_notes.md"
+    if notes.is_file():
+        L += [notes.read_text().strip(), ""]
+    L += ["## Runs", "",
+          "| run | preset | samples | wall time | median samples/s | n_envs x n_steps | batch | epochs | normalise |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for name, s in curves.items():
+        c = s["config"]
+        L.append(f"| {name} | {c.get('preset')} | {s['samples'] / 1e6:.1f} M | {s['wall_s'] / 60:.0f} min | "
+                 f"{s['samples_per_s_median']:.0f} | {c.get('n_envs')} x {c.get('n_steps')} | {c.get('batch_size')} | "
+                 f"{c.get('n_epochs')} | {c.get('normalize')} |")
+    L += ["", "![learning curves](img/training_curves.png)", ""]
+    for name in curves:
+        if (COMMITTED / name / "eval.png").is_file():
+            img = REPO / "docs" / "img" / f"training_eval_{name}.png"
+            shutil.copyfile(COMMITTED / name / "eval.png", img)
+            L += [f"Checkpoint evaluation of `{name}` (`racecav train select`):", "",
+                  f"![{name} checkpoints](img/{img.name})", ""]
+    L += ["## Success rates on the intersection scenarios (PyBullet, in-process)", "",
+          "Success = no contact and ego progress >= the scenario's `min_progress_m`; randomised trials",
+          f"(seeds {REPORT_SEED}..{REPORT_SEED}+N-1, different from the selection seeds). Paper (hardware, 10",
+          "trials): DRL reversed 80/60/70 %, DRL default 80/30/70 %, MPC-APF 70/10/60 %.", "",
+          "| policy | shipped checkpoint | trials | " + " | ".join(SCENARIOS) + " | contacts |",
+          "|---|---|---|" + "---|" * len(SCENARIOS) + "---|"]
+    for name, res in results.items():
+        meta = json.loads((REPO / "services/policy/models" / f"{name}.json").read_text())
+        succ = " | ".join(f"{100 * res[s]['success']:.0f} %" for s in SCENARIOS)
+        cont = "/".join(f"{100 * res[s]['contact']:.0f}" for s in SCENARIOS)
+        L.append(f"| {name} | {meta.get('run')} {meta.get('training_steps', 0) / 1e6:.2f} M | {res['trials']} | "
+                 f"{succ} | {cont} % |")
+    L += ["", f"Evaluation wall time of this report: {eval_s / 60:.1f} min.", ""]
+    if "default" in results and "reversed" in results:
+        d, r = results["default"]["head-to-head"]["success"], results["reversed"]["head-to-head"]["success"]
+        L.append(f"Head-to-head: reversed {100 * r:.0f} % vs default {100 * d:.0f} % "
+                 f"({'reversed better, as in the paper' if r > d else 'NOT the paper finding: reversed is not better'}).")
+        rev = [100 * results["reversed"][s]["success"] for s in SCENARIOS]
+        met = all(a >= b for a, b in zip(rev, PAPER_HW["reversed"]))
+        L.append(f"Target (reversed >= 80/60/70 %): {'met' if met else 'not met'} "
+                 f"({'/'.join(f'{v:.0f}' for v in rev)} %).")
+        L.append("")
+    return "\n".join(L) + "\n"
