@@ -191,3 +191,23 @@ def test_progress_counts_over_a_lap_and_success_needs_it():
 def test_too_many_traffic_cars_are_refused():
     with pytest.raises(ValueError, match="traffic.min_gap_m"):
         BulletWorld("racetrack", n_obstacles=63)
+
+
+def test_a_policy_plugs_in_as_traffic_driver():
+    """A racing policy drives the obstacle cars from their own scans (here a stand-in callable)."""
+    from racecav.services.sim.traffic import PolicyDriver
+
+    seen = []
+
+    def policy(scans):
+        seen.append(scans.copy())
+        return np.tile([0.6, 0.0], (len(scans), 1))
+
+    with BulletWorld("racetrack", traffic_driver=PolicyDriver(policy)) as w:
+        w.reset(seed=0)
+        before = w.obstacles()[:, :2].copy()
+        for _ in range(5):
+            w.step([0.0, 0.0])
+        moved = np.linalg.norm(w.obstacles()[:, :2] - before, axis=1)
+    assert seen[0].shape == (15, 170) and np.isfinite(seen[0]).all() and seen[0].max() <= 12.0
+    assert np.all(moved > 0.1)

@@ -100,12 +100,35 @@ class PurePursuitDriver(TrafficDriver):
         return np.stack([a_thr, a_steer, brake], axis=1)
 
 
+class PolicyDriver(TrafficDriver):
+    """Obstacle cars driven by a trained policy (the paper's racing policy): each car acts on its
+    own sanitized 170-ray scan, like the agent."""
+
+    needs_lidar = True
+
+    def __init__(self, policy):
+        """:param policy: callable ``obs (n, n_rays) -> actions (n, 2)`` in [-1, 1]."""
+        self.policy = policy
+
+    def act(self, obs: TrafficObs) -> np.ndarray:
+        return np.asarray(self.policy(obs.scans), dtype=np.float64).reshape(-1, 2)
+
+
 DRIVERS = {"pure_pursuit": PurePursuitDriver, "centerline": PurePursuitDriver}
 
 
 def make_driver(name: str) -> TrafficDriver:
-    """A traffic driver by name (the scenario's ``traffic.driver``)."""
+    """A traffic driver by name (the scenario's ``traffic.driver``): a key of DRIVERS, or
+    ``policy:NAME_OR_PATH`` for a shipped or exported policy (racecav.training.policy_io)."""
+    if name.startswith("policy:"):
+        from racecav.training.policy_io import load_numpy_policy
+
+        try:
+            return PolicyDriver(load_numpy_policy(name.split(":", 1)[1]))
+        except (OSError, ValueError, KeyError) as e:
+            raise ValueError(f"traffic.driver: cannot load {name!r}: {e}") from None
     try:
         return DRIVERS[name]()
     except KeyError:
-        raise ValueError(f"traffic.driver: unknown driver {name!r} (known: {sorted(DRIVERS)})") from None
+        raise ValueError(f"traffic.driver: unknown driver {name!r} (known: {sorted(DRIVERS)} "
+                         "or policy:NAME_OR_PATH)") from None
