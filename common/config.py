@@ -262,14 +262,14 @@ class BaselineConfig(Section):
     """Weight of the speed error ((s/m)^2)."""
     w_obstacle: float = Field(30.0, ge=0)
     """Peak of one obstacle charge's potential."""
-    obstacle_sigma: float = Field(0.35, gt=0)
-    """Width (m) of an obstacle charge's Gaussian potential, beyond the car's half-width."""
+    obstacle_margin: float = Field(0.3, gt=0)
+    """Clearance (m) beyond contact at which an obstacle charge's Gaussian has fallen to 5 %."""
     obstacle_charges: int = Field(3, ge=1, le=7)
     """Charges along an obstacle car's length (line charge)."""
     w_boundary: float = Field(5.0, ge=0)
     """Peak of one static boundary point's potential."""
-    boundary_sigma: float = Field(0.2, gt=0)
-    """Width (m) of a boundary point's potential, beyond the ego's half-width."""
+    boundary_margin: float = Field(0.2, gt=0)
+    """Clearance (m) beyond contact at which a boundary point's Gaussian has fallen to 5 %."""
     w_throttle: float = Field(0.05, ge=0)
     """Input effort: throttle."""
     w_steer: float = Field(0.5, ge=0)

@@ -1,0 +1,257 @@
+"""MPC with artificial potential fields (after Shang & Eskandarian, 2023), as the paper's baseline.
+
+Problem (solved every scan in the ego frame: the ego at the origin, heading 0):
+
+- state z = (x, y, psi, v, delta): position, heading, speed, actual steering angle;
+  input u = (T, delta_cmd): physical throttle in [0, 1] and steering command in
+  [delta_min, delta_max] (the car file's limits);
+- model: the kinematic bicycle linearised about a reference trajectory (the previous solution,
+  shifted; a linear time-varying bicycle model), with the car file's speed dynamics (the
+  throttle friction model, linearised in v), steering first-order lag ``bicycle.steer_tau`` and
+  effective wheelbase ``bicycle.lf + bicycle.lr``; horizon N steps of ``dt``;
+- cost: lane tracking (lateral offset and heading error to the lane reference line) + speed
+  tracking + APF: moving obstacles as line charges (``obstacle_charges`` points along the car,
+  predicted at constant velocity over the horizon) and static boundary points, each a Gaussian
+  bump evaluated at two ego charges (rear and front of the ego) + input effort and input rate;
+- constraints: input bounds (actuator limits) and the steering slew limit on successive commands.
+
+Solver: casadi ``sqpmethod`` with ``qrqp`` (or ``ipopt``), exact Hessian convexified by
+regularisation, warm-started from the previous solution shifted by one step. States are
+eliminated (single shooting: the model is linear, so states are affine in the inputs), leaving
+2N decision variables.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from racecav.common.config import BaselineConfig
+from racecav.common.vehicle import CarParams
+
+OBS_FIELDS = 8
+"""Per obstacle parameter: x, y, vx, vy, cos(heading), sin(heading), half_length, weight."""
+
+
+@dataclass
+class MpcResult:
+    throttle: float
+    steer_cmd: float
+    iterations: int
+    solve_s: float
+    success: bool
+    status: str
+    cost: float
+    x_pred: np.ndarray
+    """(N+1, 5) predicted states (linear model)."""
+
+
+class MpcApf:
+    """The MPC-APF problem and its warm-started solver.
+
+    :param car: car parameters (limits, model).
+    :param cfg: baseline configuration (weights, horizon, solver).
+    :param condensed: eliminate the states (single shooting, 2N variables) instead of keeping
+        them as variables with the model as equality constraints (multiple shooting).
+    """
+
+    def __init__(self, car: CarParams, cfg: BaselineConfig, condensed: bool = True):
+        import casadi as ca
+
+        self.car, self.cfg = car, cfg
+        N, dt = cfg.horizon, cfg.dt
+        self.N, self.dt = N, dt
+        self.n_obs, self.n_bnd = cfg.max_obstacles, cfg.max_boundary_points
+        bic = car.bicycle
+        self.wheelbase = bic.lf + bic.lr if bic.fitted else car.wheelbase
+        tau = bic.steer_tau
+        self.steer_a = math.exp(-dt / tau) if tau > 0 else 0.0
+        self.ego_half_width = car.width / 2
+        self.ego_charge = car.length / 2 - car.width / 2  # ego charges at +- this along its axis
+
+        nz = 5
+        self.condensed = condensed
+        U = ca.SX.sym("u", 2 * N)              # T_k, dc_k
+        Z = ca.SX.sym("z", nz * N)             # z_1 .. z_N (multiple shooting)
+        z0 = ca.SX.sym("z0", nz)               # x, y, psi, v, delta now
+        lin = ca.SX.sym("lin", 3 * N)          # psi_bar, v_bar, delta_bar per step
+        lane = ca.SX.sym("lane", 3)            # point x, y and direction of the lane line
+        vref = ca.SX.sym("vref")
+        uprev = ca.SX.sym("uprev", 2)
+        obs = ca.SX.sym("obs", OBS_FIELDS * self.n_obs)
+        bnd = ca.SX.sym("bnd", 3 * self.n_bnd)  # x, y, weight
+        P = ca.vertcat(z0, lin, lane, vref, uprev, obs, bnd)
+        self.n_p = P.shape[0]
+
+        r = car.wheel_radius
+        g, cq, cl = car.throttle_gain, car.throttle_c_quad, car.throttle_c_lin
+        J = 0
+        G, self.g_lb, self.g_ub = [], [], []
+        cth, sth = ca.cos(lane[2]), ca.sin(lane[2])
+        # Gaussian widths: exp(-d^2 / (2 sig^2)) = 5 % (d^2 = 6 sig^2) at contact distance + margin
+        sig_o = (self.ego_half_width + car.width / 2 + cfg.obstacle_margin) / math.sqrt(6.0)
+        sig_b = (self.ego_half_width + cfg.boundary_margin) / math.sqrt(6.0)
+        rate = car.steer_rate_max * dt
+        nc = cfg.obstacle_charges
+        offs = [0.0] if nc == 1 else [-1 + 2 * i / (nc - 1) for i in range(nc)]
+        zk = z0
+        states = []
+        for k in range(N):
+            T, dc = U[2 * k], U[2 * k + 1]
+            x, y, psi, v, d = zk[0], zk[1], zk[2], zk[3], zk[4]
+            pb, vb, db = lin[3 * k], lin[3 * k + 1], lin[3 * k + 2]
+            cp, sp = ca.cos(pb), ca.sin(pb)
+            # linearised kinematic bicycle (exact in v and delta at the reference point)
+            h0 = vb * (cq * vb / r + cl)            # speed loss of the friction model at v_bar
+            h1 = 2 * cq * vb / r + cl
+            f = ca.vertcat(
+                x + dt * (vb * cp + cp * (v - vb) - vb * sp * (psi - pb)),
+                y + dt * (vb * sp + sp * (v - vb) + vb * cp * (psi - pb)),
+                psi + dt * (vb * db + db * (v - vb) + vb * (d - db)) / self.wheelbase,
+                v + dt * (r * g * T - h0 - h1 * (v - vb)),
+                self.steer_a * d + (1 - self.steer_a) * dc)
+            if self.condensed:
+                zn = f  # states eliminated: affine in the inputs
+            else:
+                zn = Z[nz * k: nz * (k + 1)]
+                G.append(zn - f)
+                self.g_lb += [0.0] * nz
+                self.g_ub += [0.0] * nz
+            states.append(zn)
+            # steering slew limit between successive commands (and from the last applied one)
+            dp = uprev[1] if k == 0 else U[2 * k - 1]
+            G.append(dc - dp)
+            self.g_lb.append(-rate)
+            self.g_ub.append(rate)
+            x, y, psi, v = zn[0], zn[1], zn[2], zn[3]
+            t_k = (k + 1) * dt
+            # tracking
+            e_lat = -(x - lane[0]) * sth + (y - lane[1]) * cth
+            J += cfg.w_lane * e_lat ** 2 + cfg.w_heading * (psi - lane[2]) ** 2 + cfg.w_speed * (v - vref) ** 2
+            # input effort and rate
+            Tp = uprev[0] if k == 0 else U[2 * k - 2]
+            J += cfg.w_throttle * T ** 2 + cfg.w_steer * dc ** 2
+            J += cfg.w_dthrottle * (T - Tp) ** 2 + cfg.w_dsteer * (dc - dp) ** 2
+            # APF: ego charges at the front and rear of the ego (heading linearised)
+            egos = [(x + s * self.ego_charge, y + s * self.ego_charge * psi) for s in (-1.0, 1.0)]
+            for j in range(self.n_obs):
+                o = obs[OBS_FIELDS * j: OBS_FIELDS * (j + 1)]
+                ox, oy = o[0] + o[2] * t_k, o[1] + o[3] * t_k
+                for fo in offs:
+                    cx, cy = ox + fo * o[6] * o[4], oy + fo * o[6] * o[5]
+                    for ex, ey in egos:
+                        J += o[7] * cfg.w_obstacle * ca.exp(-((ex - cx) ** 2 + (ey - cy) ** 2) / (2 * sig_o ** 2))
+            for j in range(self.n_bnd):
+                bx, by, bw = bnd[3 * j], bnd[3 * j + 1], bnd[3 * j + 2]
+                for ex, ey in egos:
+                    J += bw * cfg.w_boundary * ca.exp(-((ex - bx) ** 2 + (ey - by) ** 2) / (2 * sig_b ** 2))
+            zk = zn
+        self.nu = 2 * N
+        self.g_lb, self.g_ub = np.array(self.g_lb), np.array(self.g_ub)
+        self.lbx = np.tile([0.0, car.delta_min], N)
+        self.ubx = np.tile([1.0, car.delta_max], N)
+        if self.condensed:
+            W = U
+            self.states_fn = ca.Function("states", [U, P], [ca.horzcat(*states).T])
+        else:
+            W = ca.vertcat(U, Z)
+            big = 1e3
+            self.lbx = np.concatenate([self.lbx, np.tile([-big, -big, -big, 0.0, car.delta_min], N)])
+            self.ubx = np.concatenate([self.ubx, np.tile([big, big, big, big, car.delta_max], N)])
+        nlp = {"x": W, "p": P, "f": J, "g": ca.vertcat(*G)}
+        self.n_w, self.n_g = W.shape[0], len(self.g_lb)
+        self.nlp = nlp
+        if cfg.solver == "ipopt":
+            opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+                    "ipopt.max_iter": cfg.max_iter, "ipopt.warm_start_init_point": "yes",
+                    "ipopt.tol": 1e-6}
+            self.solver = ca.nlpsol("mpc", "ipopt", nlp, opts)
+        else:
+            opts = {"qpsol": "qrqp", "print_time": False, "print_header": False, "print_iteration": False,
+                    "print_status": False, "max_iter": cfg.max_iter, "convexify_strategy": "eigen-clip",
+                    "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False},
+                    "error_on_fail": False, "tol_pr": 1e-6, "tol_du": 1e-4}
+            self.solver = ca.nlpsol("mpc", "sqpmethod", nlp, opts)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the warm start (new episode)."""
+        self.u = np.zeros(self.nu)
+        self.lam_g = np.zeros(self.n_g)
+        self.lam_x = np.zeros(self.n_w)
+        self.u_applied = np.zeros(2)
+        self.z_guess = np.zeros(self.n_w - self.nu)
+
+    def rollout(self, z0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The nonlinear kinematic bicycle (same speed and steering dynamics) driven by the
+        inputs ``u``: states (N+1, 5), the first being ``z0``."""
+        N, dt = self.N, self.dt
+        out = np.empty((N + 1, 5))
+        out[0] = z0
+        x, y, psi, v, d = (float(q) for q in z0)
+        r, car = self.car.wheel_radius, self.car
+        for k in range(N):
+            T, dc = u[2 * k], u[2 * k + 1]
+            x, y, psi, v, d = (x + dt * v * math.cos(psi), y + dt * v * math.sin(psi),
+                               psi + dt * v * math.tan(d) / self.wheelbase,
+                               max(v + dt * (r * car.throttle_gain * T
+                                             - v * (car.throttle_c_quad * v / r + car.throttle_c_lin)), 0.0),
+                               self.steer_a * d + (1 - self.steer_a) * dc)
+            out[k + 1] = x, y, psi, v, d
+        return out
+
+    def params(self, z0, lane, v_ref, obstacles, boundary) -> np.ndarray:
+        """Parameter vector (ego frame); also prepares the warm start.
+
+        :param z0: (x, y, psi, v, delta) now (x = y = psi = 0 in the ego frame).
+        :param lane: (x, y, direction) of the lane reference line.
+        :param obstacles: rows (x, y, vx, vy, heading, half_length), nearest first.
+        :param boundary: (M, 2) boundary points, nearest first.
+        """
+        obs = np.zeros((self.n_obs, OBS_FIELDS))
+        obs[:, 0] = 1e3  # unused slots far away with weight 0
+        for j, (ox, oy, vx, vy, hd, hl) in enumerate(list(obstacles)[: self.n_obs]):
+            obs[j] = (ox, oy, vx, vy, math.cos(hd), math.sin(hd), hl, 1.0)
+        bnd = np.zeros((self.n_bnd, 3))
+        bnd[:, 0] = 1e3
+        b = np.asarray(boundary, np.float64).reshape(-1, 2)[: self.n_bnd]
+        bnd[: len(b), :2] = b
+        bnd[: len(b), 2] = 1.0
+        z0 = np.asarray(z0, np.float64)
+        traj = self.rollout(z0, self.u)
+        self.z_guess = traj[1:].ravel()
+        lin = traj[:-1, [2, 3, 4]].ravel()
+        return np.concatenate([z0, lin, np.asarray(lane, np.float64), [v_ref],
+                               self.u_applied, obs.ravel(), bnd.ravel()])
+
+    def solve(self, p: np.ndarray) -> MpcResult:
+        """Solve with warm start; the first input is applied (remembered for the rate cost)."""
+        w0 = self.u if self.condensed else np.concatenate([self.u, self.z_guess])
+        t0 = time.perf_counter()
+        sol = self.solver(x0=w0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.g_lb, ubg=self.g_ub,
+                          lam_x0=self.lam_x, lam_g0=self.lam_g)
+        solve_s = time.perf_counter() - t0
+        st = self.solver.stats()
+        w = np.asarray(sol["x"]).ravel()
+        ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(w)))
+        if not np.all(np.isfinite(w)):
+            w = w0
+        u = np.clip(w[: self.nu], self.lbx[: self.nu], self.ubx[: self.nu])
+        if self.condensed:
+            x_pred = np.vstack([p[:5], np.asarray(self.states_fn(u, p))])
+        else:
+            x_pred = np.vstack([p[:5], w[self.nu:].reshape(self.N, 5)])
+        # warm start of the next step: shift by one, repeat the last input
+        self.u = np.concatenate([u[2:], u[-2:]])
+        lam_x = np.asarray(sol["lam_x"]).ravel()
+        lam_g = np.asarray(sol["lam_g"]).ravel()
+        ng = len(lam_g) // self.N  # constraints per step
+        self.lam_x = np.concatenate([lam_x[2:self.nu], lam_x[self.nu - 2:self.nu]]
+                                    + ([] if self.condensed else [lam_x[self.nu + 5:], lam_x[-5:]]))
+        self.lam_g = np.concatenate([lam_g[ng:], lam_g[-ng:]])
+        self.u_applied = u[:2].copy()
+        return MpcResult(float(u[0]), float(u[1]), int(st.get("iter_count", -1)), solve_s, ok,
+                         str(st.get("return_status", "")), float(sol["f"]), x_pred)

@@ -1,0 +1,122 @@
+"""What every controller service shares: newest scan in, one DriveCommand per usable scan out.
+
+The DRL policy (``racecav policy``) and the MPC-APF baseline (``racecav baseline``) both subclass
+:class:`ControllerService`, so they listen and answer on the same keys with the same message and
+the same rules; the simulator or the car cannot tell which one runs (only ``source`` differs).
+
+Rules for a scan (counted in the status ``info``, never a command):
+- malformed: not the policy's lidar geometry (ray count, angle_min, angle_increment of the car's
+  LidarSpec) -> ``malformed``; undecodable payloads are the bus's ``invalid``;
+- stale: it arrived more than ``max_scan_age_s`` ago (wall clock) by the time the loop takes it,
+  or, for a ``source = "real"`` scan (stamped with this host's monotonic clock), its stamp is
+  older than that -> ``stale``;
+- no scan: no command (the car's watchdog brakes).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from racecav.common import keys
+from racecav.common.bus import Service
+from racecav.common.config import Config
+from racecav.common.lidar import LidarSpec
+from racecav.common.messages import DriveCommand, Scan
+from racecav.common.vehicle import CarParams, steer_from_action, throttle_from_action
+
+GEOMETRY_TOL = 1e-4
+"""rad: tolerance on angle_min / angle_increment when checking a scan's geometry."""
+
+
+def scan_problem(scan: Scan, spec: LidarSpec) -> str | None:
+    """Why ``scan`` is not the observation geometry ``spec`` describes, or None if it is."""
+    n = scan.ranges.shape[0]
+    if n != spec.n_rays:
+        return f"ranges: {n} rays, the policy's lidar has {spec.n_rays}"
+    if abs(scan.angle_min - spec.angle_min) > GEOMETRY_TOL:
+        return f"angle_min: {scan.angle_min:.5f} rad, expected {spec.angle_min:.5f}"
+    if abs(scan.angle_increment - spec.angle_increment) > GEOMETRY_TOL:
+        return f"angle_increment: {scan.angle_increment:.6f} rad, expected {spec.angle_increment:.6f}"
+    return None
+
+
+def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams, scan: Scan,
+                 seq: int, compute_ns: int) -> DriveCommand:
+    """The DriveCommand answering ``scan`` with the normalised action (a_T, a_delta).
+
+    Physical values use the shared mapping of :mod:`racecav.common.vehicle`. The stamp stays in
+    the scan's clock domain: this host's monotonic clock for real scans, the scan stamp plus the
+    compute time for sim scans (sim time; the two clocks are never mixed).
+    """
+    a_t = float(np.clip(a_throttle, -1.0, 1.0))
+    a_s = float(np.clip(a_steer, -1.0, 1.0))
+    stamp = time.monotonic_ns() if scan.source == "real" else scan.stamp_ns + compute_ns
+    return DriveCommand(stamp_ns=stamp, seq=seq, source=source, a_throttle=a_t, a_steer=a_s,
+                        throttle=float(throttle_from_action(a_t)),
+                        steering_angle=float(steer_from_action(a_s, car)),
+                        scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=int(compute_ns))
+
+
+class ControllerService(Service):
+    """Base of the controllers: subclasses implement :meth:`act`.
+
+    :param cfg: whole configuration.
+    :param name: service name (policy, baseline).
+    :param car: car parameters (lidar spec, steering limits).
+    :param max_scan_age_s: staleness limit (see the module docstring).
+    """
+
+    def __init__(self, cfg: Config, name: str, car: CarParams, max_scan_age_s: float):
+        super().__init__(cfg, name)
+        self.car_params = car
+        self.spec = car.lidar
+        self.max_age_ns = int(max_scan_age_s * 1e9)
+        self.counts = {"answered": 0, "stale": 0, "malformed": 0, "no_action": 0}
+        self.last_compute_ns = 0
+
+    def setup(self) -> None:
+        self.scans = self.inbox(self.topic(keys.SCAN), Scan)
+        self.pub = self.publisher(self.topic(keys.CMD), command=True)
+
+    def act(self, scan: Scan) -> tuple[float, float] | None:
+        """Normalised action (a_T, a_delta) for a valid, fresh scan; None = no command."""
+        raise NotImplementedError
+
+    def check(self, scan: Scan) -> bool:
+        """True if ``scan`` may be answered; otherwise count why and return False."""
+        problem = scan_problem(scan, self.spec)
+        if problem is not None:
+            self.counts["malformed"] += 1
+            self._record_error(f"malformed scan {scan.seq}: {problem}")
+            return False
+        now = time.monotonic_ns()
+        _, arrival = self.scans.latest()
+        age = now - arrival
+        if scan.source == "real":
+            age = max(age, now - scan.stamp_ns)
+        if age > self.max_age_ns:
+            self.counts["stale"] += 1
+            self._record_error(f"stale scan {scan.seq}: {age / 1e6:.1f} ms old")
+            return False
+        return True
+
+    def step(self) -> None:
+        scan = self.scans.take(timeout=0.2)
+        if scan is None or not self.check(scan):
+            return
+        t0 = time.perf_counter_ns()
+        action = self.act(scan)
+        compute = time.perf_counter_ns() - t0
+        if action is None:
+            self.counts["no_action"] += 1
+            return
+        self.last_compute_ns = compute
+        self.pub.put(make_command(self.name, action[0], action[1], self.car_params, scan,
+                                  self.counts["answered"], compute))
+        self.counts["answered"] += 1
+
+    def info(self) -> dict[str, Any]:
+        return {**self.counts, "last_compute_us": self.last_compute_ns / 1e3}

@@ -1,0 +1,74 @@
+"""``racecav policy``: the DRL policy as a controller on the bus.
+
+Newest Scan in (racecav/<car>/scan), one DriveCommand out per usable scan (racecav/<car>/cmd,
+express, high priority), naming the scan it answers. The observation is built exactly as in
+training: :func:`racecav.common.lidar.sanitize` (no return / beyond range -> range_max, closer
+than range_min -> range_min), then the normalisation shipped with the weights (inside
+:class:`racecav.services.policy.model.NumpyPolicy`), then plain-numpy inference (no torch in the
+loop). Stale, malformed and missing scans get no command and are counted (see
+:mod:`racecav.services.controller`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from racecav.common.config import Config
+from racecav.common.lidar import sanitize
+from racecav.common.messages import Scan
+from racecav.common.vehicle import load_car
+from racecav.services.controller import ControllerService
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", help="reversed | default | racing | PATH to a policy .npz (default: policy.model)")
+    p.add_argument("--max-scan-age", type=float, help="seconds; older scans get no command (default: policy.max_scan_age_s)")
+
+
+class PolicyService(ControllerService):
+    """The policy controller.
+
+    :param cfg: whole configuration (section ``policy``).
+    :param policy: a loaded NumpyPolicy (default: ``load_policy(cfg.policy.model)``).
+    """
+
+    def __init__(self, cfg: Config, policy=None):
+        from racecav.services.policy.model import load_policy
+
+        pcfg = cfg.policy
+        car = load_car(pcfg.car)
+        super().__init__(cfg, "policy", car, pcfg.max_scan_age_s)
+        self.model_ref = pcfg.model
+        self.policy = policy if policy is not None else load_policy(pcfg.model)
+        if self.policy.obs_dim != self.spec.n_rays:
+            raise ValueError(f"policy {self.model_ref!r}: expects {self.policy.obs_dim} rays, "
+                             f"the car's lidar has {self.spec.n_rays}")
+
+    def observe(self, scan: Scan):
+        """The observation of a scan, exactly as the training env builds it."""
+        return sanitize(scan.ranges, self.spec)
+
+    def act(self, scan: Scan) -> tuple[float, float]:
+        a = self.policy(self.observe(scan))
+        return float(a[0]), float(a[1])
+
+    def info(self) -> dict[str, Any]:
+        return {**super().info(), "model": self.model_ref, "normalize": self.policy.normalize,
+                "n_params": self.policy.n_params}
+
+
+def run(args: argparse.Namespace, cfg: Config) -> int:
+    upd = {}
+    if getattr(args, "model", None):
+        upd["model"] = args.model
+    if getattr(args, "max_scan_age", None) is not None:
+        upd["max_scan_age_s"] = args.max_scan_age
+    try:
+        pcfg = type(cfg.policy).model_validate({**cfg.policy.model_dump(), **upd})
+        cfg = cfg.model_copy(update={"policy": pcfg})
+        svc = PolicyService(cfg)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"racecav policy: {e}")
+        return 2
+    return svc.run()
