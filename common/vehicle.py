@@ -178,6 +178,21 @@ def wheel_speed_step(w, throttle, dt: float, car: CarParams):
     return np.maximum(w + dt * dw, 0.0)
 
 
+def steady_speed(throttle, car: CarParams, speed_scale: float = 1.0):
+    """Forward speed (m/s) the friction model settles at for a constant throttle T, for a car
+    whose wheel velocity target is ``speed_scale * w`` (the agent: car.agent_speed_scale)."""
+    a, b, g = car.throttle_c_quad, car.throttle_c_lin, car.throttle_gain
+    t = np.asarray(throttle, dtype=np.float64)
+    w = (-b + np.sqrt(b * b + 4 * a * g * t)) / (2 * a) if a > 0 else g * t / b
+    return w * car.wheel_radius * speed_scale
+
+
+def throttle_for_speed(speed, car: CarParams, speed_scale: float = 1.0):
+    """The constant throttle T whose steady speed is ``speed`` (inverse of :func:`steady_speed`)."""
+    w = np.asarray(speed, dtype=np.float64) / (car.wheel_radius * speed_scale)
+    return np.clip(w * (car.throttle_c_quad * w + car.throttle_c_lin) / car.throttle_gain, 0.0, 1.0)
+
+
 def throttle_from_action(a_throttle):
     """Physical throttle T = clip(a_T, 0, 1): the paper's mapping (no reverse, no brake)."""
     return np.clip(a_throttle, 0.0, 1.0)

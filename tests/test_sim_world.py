@@ -72,12 +72,15 @@ def test_driving_into_a_wall_ends_the_episode(crossing):
 
 @pytest.mark.parametrize("name", [n for n in scenario_names() if not n.startswith("racetrack")])
 def test_intersection_scenarios_collide_without_evasion(name):
-    """Holding ~1 m/s straight (throttle 0.4 is the friction model's 1 m/s steady state) hits the
+    """Holding ~1 m/s straight (the throttle whose steady speed is 1 m/s for the agent) hits the
     obstacle car: the scenarios are timed for a collision."""
+    from racecav.common.vehicle import throttle_for_speed
+
     with BulletWorld(name) as w:
+        t_hold = float(throttle_for_speed(1.0, w.car, w.car.agent_speed_scale))
         w.reset(seed=1)
         for _ in range(int(w.scenario.duration_s / w.car.control_period_s)):
-            _, _, collided, info = w.step([0.4, 0.0])
+            _, _, collided, info = w.step([t_hold, 0.0])
             if collided[0]:
                 break
         assert collided[0] and info["contact_with"] == "car1", info

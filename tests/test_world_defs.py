@@ -23,6 +23,14 @@ def test_car_loads_and_friction_model_settles_at_autovrl_speed():
     assert 0 < w[1] < w[0] and w[2] == 0.0
     assert steer_from_action(5.0, car) == car.delta_max and steer_from_action(-5.0, car) == car.delta_min
     assert throttle_from_action(-0.3) == 0.0 and throttle_from_action(0.4) == pytest.approx(0.4)
+    from racecav.common.vehicle import steady_speed, throttle_for_speed
+    assert steady_speed(1.0, car) == pytest.approx(car.v_max)
+    t = throttle_for_speed(1.0, car, car.agent_speed_scale)
+    assert steady_speed(t, car, car.agent_speed_scale) == pytest.approx(1.0)
+    w = 0.0
+    for _ in range(4000):  # the friction model does settle there
+        w = wheel_speed_step(w, t, car.physics_dt, car)
+    assert w * car.wheel_radius * car.agent_speed_scale == pytest.approx(1.0, rel=1e-3)
 
 
 def test_car_file_errors_name_the_field(tmp_path):

@@ -266,7 +266,9 @@ class BulletWorld:
             if "agent_pose" in options:
                 ex, ey, eyaw = options["agent_pose"]
             v0 = float(options.get("agent_speed", v0))
-            self.agent = self._add_car(ex, ey, eyaw, "agent", 1.0)
+            # the ego is the agent: the same throttle response as in training and on the real car
+            # (the actuator maps T to the speed it meant for the agent, agent_speed_scale included)
+            self.agent = self._add_car(ex, ey, eyaw, "agent", car.agent_speed_scale)
             for o in self.trial.obstacles:
                 self._add_car(o.x, o.y, o.yaw, "obstacle", 1.0, kinematic=True)
         n = len(self.cars)
