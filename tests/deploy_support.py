@@ -1,0 +1,150 @@
+"""A deployed car in a temporary root, its units run as plain processes (no systemd as PID 1 here).
+
+``DeployedCar`` runs ``racecav deploy install --root TMP --venv <this venv>``, points the
+installed racecav.env at free loopback ports and emulated devices (the documented way to
+override the config), then starts each unit's ExecStart line with the environment systemd would
+give it (Environment=, EnvironmentFile=, NOTIFY_SOCKET, WATCHDOG_USEC), in the unit's working
+directory with its state/cache directories created, as systemd does.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from racecav.common import procs
+from racecav.common.config import load_config
+from racecav.deploy.install import Layout, install
+from racecav.deploy.units import read_env_file, service_command
+
+
+def wait_until(pred, timeout=10.0, step=0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(step)
+    return False
+
+
+class Notify:
+    """A systemd notification socket (abstract namespace): what the units' Type=notify reads."""
+
+    def __init__(self, name: str):
+        self.addr = f"@racecav-test-{os.getpid()}-{name}-{time.monotonic_ns()}"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind("\0" + self.addr[1:])
+        self.sock.settimeout(0.2)
+        self.messages: list[tuple[float, str]] = []
+
+    def poll(self) -> list[str]:
+        while True:
+            try:
+                self.messages.append((time.monotonic(), self.sock.recv(4096).decode()))
+            except (socket.timeout, BlockingIOError):
+                return [m for _, m in self.messages]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class DeployedCar:
+    """Install into ``root`` and run units from it.
+
+    :param extra_env: lines added to the installed racecav.env (KEY -> value).
+    """
+
+    def __init__(self, root: Path, extra_env: dict[str, str] | None = None, car: str = "car0"):
+        self.root, self.car = root, car
+        self.lay = Layout(root=root, venv=sys.prefix)
+        install(self.lay, car=car, tls=True, systemctl=False)
+        self.port, self.tls_port = procs.free_port(), procs.free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.tls_endpoint = f"tls/localhost:{self.tls_port}"
+        env = {"RACECAV_BUS__CONNECT": f'["{self.endpoint}"]',
+               "RACECAV_ROUTER__LISTEN": f'["{self.endpoint}", "tls/127.0.0.1:{self.tls_port}"]',
+               **(extra_env or {})}
+        with open(self.lay.etc / "racecav.env", "a") as f:
+            for k, v in env.items():
+                f.write(f"{k}='{v}'\n")
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.notify: dict[str, Notify] = {}
+        self.logs = root / "logs"
+        self.logs.mkdir(exist_ok=True)
+
+    def unit(self, name: str) -> Path:
+        return self.lay.unit_dir / f"racecav-{name}.service"
+
+    def command(self, name: str) -> tuple[list[str], dict[str, str]]:
+        """ExecStart argv and environment of racecav-<name>.service, state dirs under the root."""
+        notify = self.notify[name] = Notify(name)
+        argv, env = service_command(self.unit(name), {"PATH": os.environ.get("PATH", "/usr/bin:/bin"),
+                                                      "NOTIFY_SOCKET": notify.addr})
+        svc_watchdog = self._unit_value(name, "WatchdogSec")
+        env["WATCHDOG_USEC"] = str(int(float(svc_watchdog) * 1e6))
+        for k, v in env.items():  # StateDirectory=/CacheDirectory= live under the root here
+            if v.startswith(("/var/lib/racecav", "/var/cache/racecav")):
+                env[k] = str(self.root / v.lstrip("/"))
+        return argv, env
+
+    def _unit_value(self, name: str, key: str) -> str:
+        from racecav.deploy.units import parse_unit
+
+        return parse_unit(self.unit(name))["Service"][key][-1]
+
+    def start(self, name: str) -> subprocess.Popen:
+        """Start racecav-<name>.service's ExecStart as a process (its own process group)."""
+        argv, env = self.command(name)
+        wd = self.root / "var/lib/racecav"
+        wd.mkdir(parents=True, exist_ok=True)
+        log = open(self.logs / f"{name}-{len([k for k in self.procs if k.startswith(name)])}.log", "ab")
+        p = subprocess.Popen(argv, env=env, cwd=wd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.procs[name] = p
+        return p
+
+    def wait_ready(self, name: str, timeout: float = 60.0) -> None:
+        """Until the unit's process sent READY=1 (what systemd waits for with Type=notify)."""
+        p, n = self.procs[name], self.notify[name]
+        if not wait_until(lambda: "READY=1" in n.poll() or p.poll() is not None, timeout):
+            raise TimeoutError(f"{name}: no READY=1 within {timeout} s\n{self.log(name)}")
+        if p.poll() is not None:
+            raise RuntimeError(f"{name} exited with {p.returncode}\n{self.log(name)}")
+
+    def log(self, name: str) -> str:
+        return "\n".join(f.read_text(errors="replace")[-3000:] for f in sorted(self.logs.glob(f"{name}-*.log")))
+
+    def stop(self, name: str) -> int:
+        return procs.stop(self.procs[name])
+
+    def stop_all(self) -> None:
+        for name in reversed(list(self.procs)):
+            procs.stop(self.procs[name])
+        for n in self.notify.values():
+            n.close()
+
+    def account_env(self, account: str) -> dict[str, str]:
+        return read_env_file(self.lay.etc / "credentials" / f"{account}.env")
+
+    def client_config(self, account: str | None, tls: bool = False, cert: bool = True, **bus):
+        """Config of a client: ``account``'s login (None: no login), over TLS or loopback tcp."""
+        env = {"RACECAV_CONFIG": str(self.lay.etc / "racecav.toml"), **read_env_file(self.lay.etc / "racecav.env")}
+        env.pop("RACECAV_ROUTER__LISTEN", None)
+        if account:
+            env.update(self.account_env(account))
+        cfg = load_config(environ=env)
+        upd = dict(bus)
+        if tls:
+            tls_dir = self.lay.etc / "tls"
+            upd.update(connect=[self.tls_endpoint], tls_root_ca=tls_dir / "ca.pem")
+            if cert:
+                upd.update(tls_cert=tls_dir / f"{account or 'monitor'}.pem", tls_key=tls_dir / f"{account or 'monitor'}.key")
+        return cfg.model_copy(update={"bus": cfg.bus.model_copy(update=upd)})
+
+    def session(self, account: str | None, **kw):
+        from racecav.common.client import open_session
+
+        return open_session(self.client_config(account, **kw))
