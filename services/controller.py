@@ -76,6 +76,9 @@ class ControllerService(Service):
         self.max_age_ns = int(max_scan_age_s * 1e9)
         self.counts = {"answered": 0, "stale": 0, "malformed": 0, "no_action": 0}
         self.last_compute_ns = 0
+        self.scan_source = ""
+        """Source of the newest scan taken ("real": the sensor, "sim": the simulator): with the
+        sensor and sim units swapped at runtime, ``racecav state`` shows which one feeds us."""
 
     def setup(self) -> None:
         self.scans = self.inbox(self.topic(keys.SCAN), Scan)
@@ -105,6 +108,8 @@ class ControllerService(Service):
 
     def step(self) -> None:
         scan = self.scans.take(timeout=0.2)
+        if scan is not None:
+            self.scan_source = scan.source
         if scan is None or not self.check(scan):
             return
         t0 = time.perf_counter_ns()
@@ -119,4 +124,4 @@ class ControllerService(Service):
         self.counts["answered"] += 1
 
     def info(self) -> dict[str, Any]:
-        return {**self.counts, "last_compute_us": self.last_compute_ns / 1e3}
+        return {**self.counts, "last_compute_us": self.last_compute_ns / 1e3, "scan_source": self.scan_source}
