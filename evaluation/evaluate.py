@@ -209,7 +209,20 @@ def _guarded(fn) -> int:
         signal.signal(signal.SIGTERM, old)
 
 
-def run_single(args: argparse.Namespace, cfg: Config) -> int:
+def trial_line(t) -> str:
+    from racecav.evaluation.plots import outcome
+
+    gap = "n/a" if t.min_gap_m is None else f"{t.min_gap_m:.2f} m"
+    lat = "n/a" if t.latency_ms.median is None else f"{t.latency_ms.median:.2f} ms (p99 {t.latency_ms.p99:.2f})"
+    return (f"  trial {t.index} (seed {t.seed}): {outcome(t)}; min gap {gap}, progress {t.progress_m:.1f} m, "
+            f"scan->command {lat}")
+
+
+def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -> int:
+    """One scenario x one controller (``racecav eval --scenario S --controller C``).
+
+    :param per_trial: also print one line per trial (the demo).
+    """
     from racecav.common.scenario import load_scenario
     from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
 
@@ -248,6 +261,9 @@ def run_single(args: argparse.Namespace, cfg: Config) -> int:
         print(f"racecav eval: {e}", file=sys.stderr)
         return 2
     write_json(res, json_path)
+    if per_trial:
+        for t in res.trials:
+            print(trial_line(t))
     print(summary_line(res))
     if res.trials:
         print(f"trajectories: {plot_run(res, plot, args.plot_trials)}")

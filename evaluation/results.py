@@ -28,7 +28,7 @@ SCHEMA_PATH = Path(__file__).resolve().parents[1] / "docs" / "results-schema.jso
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True)
 
 
 class Stats(_Strict):

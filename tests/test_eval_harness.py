@@ -1,0 +1,172 @@
+"""The evaluation harness end to end: real router, sim and controller processes over Zenoh."""
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from racecav.common import procs
+from racecav.common.config import load_config
+from racecav.evaluation.harness import CONTROLLERS, Controller, Harness, missing
+from racecav.evaluation.results import validate_run
+
+# A scenario file of our own (not a shipped one): an obstacle car parked beside the ego's road.
+PARKED = """
+name = "parked-beside"
+world = "intersection"
+duration_s = 7.0
+[ego]
+x = -4.0
+y = 0.0
+yaw_deg = 0.0
+speed = 1.0
+[[obstacles]]
+x = 0.0
+y = 0.8
+yaw_deg = 0.0
+speed = 0.0
+[success]
+min_progress_m = 4.0
+"""
+
+
+def _eval(tmp_path, *args, timeout=120):
+    return subprocess.run(procs.racecav_cmd("eval", *args, "--out-dir", str(tmp_path), "--no-progress"),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_eval_cli_scripted_head_to_head(tmp_path):
+    out = tmp_path / "r.json"
+    r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "scripted", "--trials", "2",
+              "--json", str(out), "--plot", str(tmp_path / "r.png"))
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = validate_run(out)
+    assert res.complete and len(res.trials) == 2 and [t.seed for t in res.trials] == [0, 1]
+    for t in res.trials:  # the non-evading car meets the head-on obstacle near the crossing
+        assert t.collided and not t.success and t.contact_with == "car1"
+        assert 3.0 < t.contact_time_s < 5.0 and t.min_gap_m == 0.0
+        assert t.steps == len(t.trajectory.t) and len(t.trajectory.obstacles) == 1
+        assert t.commands >= t.steps - 1 and t.latency_ms.n > 0 and t.latency_ms.median > 0
+        ego, obs = np.array(t.trajectory.ego), np.array(t.trajectory.obstacles[0])
+        assert ego[-1, 0] > ego[0, 0] + 3 and obs[-1, 0] < obs[0, 0] - 3  # they drove at each other
+    assert res.summary.ci95 is not None and res.summary.collisions == 2
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 2
+    assert "scan->command latency median" in r.stdout
+
+
+def test_eval_cli_any_scenario_file_and_success(tmp_path):
+    sc = tmp_path / "parked.toml"
+    sc.write_text(PARKED)
+    r = _eval(tmp_path, "--scenario", str(sc), "--controller", "scripted", "--trials", "1", "--seed", "7")
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = validate_run(tmp_path / "parked-beside-scripted.json")
+    t = res.trials[0]
+    assert t.seed == 7 and t.success and not t.collided and t.progress_m >= 4.0
+    # driving straight past a car parked 0.8 m to the left: footprints 0.8 - 0.3 apart
+    assert t.min_gap_m == pytest.approx(0.5, abs=0.08) and t.min_center_distance_m == pytest.approx(0.8, abs=0.08)
+
+
+def test_malformed_scenario_file_is_rejected_naming_the_field(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(PARKED.replace("duration_s = 7.0", "duration_s = -1.0"))
+    r = _eval(tmp_path, "--scenario", str(bad), "--controller", "scripted", "--trials", "1", timeout=60)
+    assert r.returncode == 2 and "duration_s" in r.stderr and str(bad) in r.stderr
+    bad.write_text(PARKED.replace("[success]", "[sucess]"))
+    r = _eval(tmp_path, "--scenario", str(bad), "--controller", "scripted", "--trials", "1", timeout=60)
+    assert r.returncode == 2 and "sucess" in r.stderr
+    bad.write_text("name = [unclosed")
+    r = _eval(tmp_path, "--scenario", str(bad), "--controller", "scripted", "--trials", "1", timeout=60)
+    assert r.returncode == 2 and "invalid TOML" in r.stderr
+    assert not (tmp_path / "logs").exists()  # refused before any process started
+
+
+def test_interrupted_eval_is_partial_and_resumes(tmp_path):
+    out = tmp_path / "r.json"
+    jsonl = tmp_path / "r.jsonl"
+    args = ["--scenario", "right-to-left", "--controller", "scripted", "--json", str(out)]
+    p = subprocess.Popen(procs.racecav_cmd("eval", *args, "--trials", "200", "--out-dir", str(tmp_path),
+                                           "--no-progress"),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 90
+    while not (jsonl.exists() and len(jsonl.read_text().splitlines()) >= 2):
+        assert p.poll() is None and time.monotonic() < deadline, p.communicate()
+        time.sleep(0.1)
+    os.kill(p.pid, signal.SIGTERM)
+    stdout, stderr = p.communicate(timeout=60)
+    assert p.returncode == 130, stdout + stderr
+    assert "PARTIAL" in stderr
+    res = validate_run(out)
+    done = len(res.trials)
+    assert not res.complete and res.stopped_reason.startswith("interrupted") and 2 <= done < 200
+    assert res.trials_requested == 200 and res.summary.trials == done
+    first = jsonl.read_text().splitlines()[:done]
+    # resume: only the missing trials run, the finished ones are kept as they were
+    r = _eval(tmp_path, *args, "--trials", str(done + 1), "--resume")
+    assert r.returncode == 0, r.stdout + r.stderr
+    res2 = validate_run(out)
+    assert res2.complete and [t.index for t in res2.trials] == list(range(done + 1))
+    lines = jsonl.read_text().splitlines()
+    assert lines[:done] == first and len(lines) == done + 1
+    # a JSONL of another run (different seed) is refused, not mixed in
+    r = _eval(tmp_path, *args, "--trials", str(done + 2), "--resume", "--seed", "5")
+    assert r.returncode == 2 and "belongs to run" in r.stderr
+
+
+def _random_policy(path: Path) -> Path:
+    rng = np.random.default_rng(0)
+    arrays = dict(w0=rng.normal(0, 0.1, (170, 64)), b0=np.zeros(64), w1=rng.normal(0, 0.2, (64, 64)),
+                  b1=np.zeros(64), w2=rng.normal(0, 0.2, (64, 2)), b2=np.array([0.5, 0.0]))
+    np.savez(path, **{k: v.astype(np.float32) for k, v in arrays.items()})
+    return path
+
+
+def test_same_seed_same_trial_in_lockstep(tmp_path):
+    """Trials through reset with the same seed are identical when the controller reports a fixed
+    compute time (a measured one jitters by microseconds, and lockstep charges it)."""
+    # one program entry: the scripted controller's program position does not restart per trial
+    ctrl = Controller("turning", ("scripted", "--program", "0.7,0.25,100000", "--compute-ms", "13"),
+                      "scripted", "racecav.services.sim.scripted")
+    with Harness(load_config(), ctrl, "lockstep", "head-to-head", tmp_path / "logs") as h:
+        h.set_scenario("head-to-head")
+        a, b, c = h.run_trial(0, 11), h.run_trial(1, 11), h.run_trial(2, 12)
+    assert a.trajectory == b.trajectory and (a.success, a.progress_m, a.min_gap_m) == (b.success, b.progress_m, b.min_gap_m)
+    assert c.trajectory.obstacles != a.trajectory.obstacles  # another seed, another obstacle start
+    assert a.compute_ms.median == pytest.approx(13.0)
+
+
+def test_policy_service_under_the_harness(tmp_path):
+    """The policy service with weights of the right shape (until the shipped ones exist)."""
+    model = _random_policy(tmp_path / "rand.npz")
+    ctrl = Controller("drl-test", ("policy", "--model", str(model)), "policy",
+                      "racecav.services.policy.service", model)
+    if missing(ctrl):
+        pytest.skip(missing(ctrl))
+    with Harness(load_config(), ctrl, "lockstep", "head-to-head", tmp_path / "logs") as h:
+        h.set_scenario("head-to-head")
+        t = h.run_trial(0, 11)
+        st = h.controller_status()
+    assert t.commands >= t.steps - 1 and t.compute_ms.n == t.commands and 0 < t.compute_ms.median < 50
+    assert st.info.get("answered", st.published) >= t.steps - 1
+
+
+@pytest.mark.parametrize("name", ["drl-reversed", "drl-default", "mpc-apf"])
+def test_shipped_controllers_run_under_the_harness(tmp_path, name):
+    ctrl = CONTROLLERS[name]
+    why = missing(ctrl)
+    if why:
+        pytest.skip(why)
+    r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", name, "--trials", "1",
+              "--json", str(tmp_path / "r.json"), timeout=180)
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = validate_run(tmp_path / "r.json")
+    t = res.trials[0]
+    assert res.complete and res.controller.service == ctrl.service
+    assert t.commands >= t.steps - 1 and t.compute_ms.n == t.commands and t.latency_ms.n > 0
+    # the same trial seed as everywhere: the obstacle starts where scenario sampling puts it
+    assert json.loads((tmp_path / "r.json").read_text())["base_seed"] == 0
