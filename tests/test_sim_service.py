@@ -90,7 +90,7 @@ def _lockstep_run(spawn, session, seed: int) -> list[tuple]:
     sim = spawn("sim", "--scenario", "right-to-left", "--mode", "lockstep", "--seed", str(seed))
     procs.wait_alive(session, "car0", "sim", proc=sim)
     states = States(session)
-    ctl = spawn("scripted", "--program", "0.8,0.3,8;1.0,-0.6,8;0.5,0.0,100", "--compute-ms", "13")
+    ctl = spawn("scripted", "--program", "0.3,0.2,8;0.5,-0.3,8;0.2,0.0,100", "--compute-ms", "13")
     items = states.wait(lambda s: any(x.collided for x in s) or len(s) >= 50, timeout=60)
     procs.stop(ctl)
     procs.stop(sim)
