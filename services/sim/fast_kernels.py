@@ -25,8 +25,25 @@ EPS_AHEAD = 1e-3  # m: segments are clipped to x >= EPS_AHEAD in the sensor fram
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _raster(buf, ax, ay, bx, by, ray_c, ray_s, amin, inv_inc, n):
-    """Rasterise segment a-b (sensor frame) into the depth buffer ``buf``."""
+def _fast_atan(t):
+    """atan(t) within ~1e-3 rad (only used to guess a bin; the bins are then fixed exactly)."""
+    a = abs(t)
+    inv = a > 1.0
+    if inv:
+        a = 1.0 / a
+    r = a * (0.7853981633974483 + 0.273 * (1.0 - a))
+    if inv:
+        r = 1.5707963267948966 - r
+    return r if t >= 0.0 else -r
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _raster(buf, ax, ay, bx, by, ray_c, ray_s, ray_t, amin, inv_inc, n):
+    """Rasterise segment a-b (sensor frame) into the depth buffer ``buf``.
+
+    The covered rays are those whose slope ``tan(angle)`` lies between the slopes ``y / x`` of
+    the (clipped) end points: exact comparisons against the table ``ray_t``, after a cheap
+    guess of the index, so that two faces sharing an end point leave no ray between them."""
     if ax < EPS_AHEAD and bx < EPS_AHEAD:
         return
     # Cull: both ends right of the first ray's line or both left of the last ray's line
@@ -58,18 +75,28 @@ def _raster(buf, ax, ay, bx, by, ray_c, ray_s, amin, inv_inc, n):
         u = (EPS_AHEAD - ax) / dx
         cx1 = EPS_AHEAD
         cy1 = ay + u * dy
-    a0 = math.atan2(cy0, cx0)
-    a1 = math.atan2(cy1, cx1)
-    if a0 > a1:
-        t = a0
-        a0 = a1
-        a1 = t
-    f0 = (a0 - amin) * inv_inc
-    f1 = (a1 - amin) * inv_inc
-    if f1 < 0.0 or f0 > n - 1:
+    t0 = cy0 / cx0
+    t1 = cy1 / cx1
+    if t0 > t1:
+        t = t0
+        t0 = t1
+        t1 = t
+    if t1 < ray_t[0] or t0 > ray_t[n - 1]:
         return
-    i0 = int(math.ceil(f0)) if f0 > 0.0 else 0
-    i1 = int(math.floor(f1)) if f1 < n - 1 else n - 1
+    i0 = int(math.ceil((_fast_atan(t0) - amin) * inv_inc))
+    i0 = min(max(i0, 0), n - 1)
+    while i0 > 0 and ray_t[i0 - 1] >= t0:
+        i0 -= 1
+    while i0 < n - 1 and ray_t[i0] < t0:
+        i0 += 1
+    i1 = int(math.floor((_fast_atan(t1) - amin) * inv_inc))
+    i1 = min(max(i1, 0), n - 1)
+    while i1 < n - 1 and ray_t[i1 + 1] <= t1:
+        i1 += 1
+    while i1 > 0 and ray_t[i1] > t1:
+        i1 -= 1
+    if ray_t[i0] < t0 or ray_t[i1] > t1:
+        return
     for i in range(i0, i1 + 1):
         den = ray_c[i] * dy - ray_s[i] * dx
         if den != 0.0:
@@ -99,8 +126,8 @@ def box_corners(x, y, yaw, hx, hy, out):
 
 
 @njit(cache=True, fastmath=True)
-def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, amin, inc, range_max,
-          out):
+def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, ray_t, amin, inc,
+          range_max, out):
     """170-ray (or any) lidar of every observing car against walls and the other cars' boxes.
 
     :param x, y, yaw: (N, C) car poses.
@@ -109,7 +136,7 @@ def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, amin,
     :param faces: (F, 4) float64 one-sided wall faces x0, y0, x1, y1 (see :func:`wall_faces`).
     :param corners: (N, C, 4, 2) box corners from :func:`box_corners`.
     :param mount: (3,) sensor x, y, yaw in the car frame.
-    :param ray_c, ray_s: cos/sin of the ray angles (laser frame).
+    :param ray_c, ray_s, ray_t: cos/sin/tan of the ray angles (laser frame, |angle| < 90 deg).
     :param out: (N, C, R) float32, written where ``observe``: distance, +inf where no return
         within range_max (the Scan message's convention).
     """
@@ -158,7 +185,7 @@ def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, amin,
                 pay = -sa * ax + ca * ay
                 pbx = ca * bx + sa * by
                 pby = -sa * bx + ca * by
-                _raster(buf, pax, pay, pbx, pby, ray_c, ray_s, amin, inv_inc, R)
+                _raster(buf, pax, pay, pbx, pby, ray_c, ray_s, ray_t, amin, inv_inc, R)
             for j in range(C):
                 if j == c or not active[n, j]:
                     continue
@@ -173,7 +200,7 @@ def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, amin,
                     bx = corners[n, j, k2, 0] - sx
                     by = corners[n, j, k2, 1] - sy_
                     _raster(buf, ca * ax + sa * ay, -sa * ax + ca * ay, ca * bx + sa * by,
-                            -sa * bx + ca * by, ray_c, ray_s, amin, inv_inc, R)
+                            -sa * bx + ca * by, ray_c, ray_s, ray_t, amin, inv_inc, R)
             for i in range(R):
                 out[n, c, i] = buf[i] if buf[i] < range_max else np.inf
 
@@ -427,7 +454,8 @@ def global_nearest(px, py, cl):
 def pure_pursuit(x, y, yaw, v, active, idx, offset, vfac, cl, ds, wheelbase, steer_gain, v_max,
                  a_lat, width, first, out):
     """Traffic driver: pure pursuit of the centerline (shifted by each car's lateral offset),
-    speed from a per-car fraction of top speed, slowed for curvature ahead and for a car ahead.
+    speed from a per-car fraction of top speed, slowed for curvature ahead and for a car ahead
+    driving the same way.
 
     :param cl: (K, 4) dense centerline table x, y, yaw, curvature at spacing ``ds``.
     :param first: index of the first driven car (1: car 0 is the agent).
@@ -465,9 +493,10 @@ def pure_pursuit(x, y, yaw, v, active, idx, offset, vfac, cl, ds, wheelbase, ste
             vd = vfac[n, c] * v_max
             if kap > 1e-6:
                 vd = min(vd, math.sqrt(a_lat / kap))
-            # a car ahead in the lane
+            # a car ahead in the lane, driving the same way (an oncoming car, e.g. the agent in
+            # the reversed heading, is not braked for: as in the PyBullet traffic driver)
             for j in range(C):
-                if j == c or not active[n, j]:
+                if j == c or not active[n, j] or math.cos(yaw[n, j] - yaw[n, c]) <= 0.0:
                     continue
                 ox = ca * (x[n, j] - x[n, c]) + sa * (y[n, j] - y[n, c])
                 oy = -sa * (x[n, j] - x[n, c]) + ca * (y[n, j] - y[n, c])

@@ -172,7 +172,9 @@ class FastWorld:
         m = car.lidar_mount
         self.mount = np.array([m.x, m.y, m.yaw], dtype=np.float64)
         ang = lidar_mod.ray_angles(self.spec).astype(np.float64)
-        self.ray_c, self.ray_s = np.cos(ang), np.sin(ang)
+        if np.abs(ang + self.mount[2]).max() >= math.pi / 2:
+            raise ValueError("lidar: the fast world's lidar needs every ray within +-90 deg of ahead")
+        self.ray_c, self.ray_s, self.ray_t = np.cos(ang), np.sin(ang), np.tan(ang)
         b = car.bicycle
         self.set_bicycle(b)
 
@@ -292,7 +294,7 @@ class FastWorld:
         collided = self.wall_hit[:, 0] | (self.car_hit[:, 0] >= 0)
         respawned = self._respawn_obstacles(collided)
         K.lidar(self.x, self.y, self.yaw, self.active, self.observe, self.faces, self.corners,
-                self.mount, self.ray_c, self.ray_s, self.spec.angle_min, self.spec.angle_increment,
+                self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min, self.spec.angle_increment,
                 self.spec.range_max, self.ranges)
         a_d = np.clip(a[:, 1], -1.0, 1.0)
         info = {"wall": self.wall_hit[:, 0].copy(), "car": self.car_hit[:, 0].copy(),
@@ -328,7 +330,7 @@ class FastWorld:
         observe = np.zeros_like(self.observe)
         observe[envs] = self.observe[envs]
         K.lidar(self.x, self.y, self.yaw, self.active, observe, self.faces, self.corners,
-                self.mount, self.ray_c, self.ray_s, self.spec.angle_min, self.spec.angle_increment,
+                self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min, self.spec.angle_increment,
                 self.spec.range_max, self.ranges)
 
     # ------------------------------------------------------------------ views
