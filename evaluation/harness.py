@@ -54,6 +54,14 @@ def _policy_model(name: str) -> Path:
     return base / "models" / f"{name}.npz"
 
 
+def _hold_speed_throttle(speed: float) -> float:
+    """Throttle whose steady speed is ``speed`` for the sim's agent car."""
+    from racecav.common.vehicle import load_car, throttle_for_speed
+
+    car = load_car()
+    return float(throttle_for_speed(speed, car, car.agent_speed_scale))
+
+
 CONTROLLERS: dict[str, Controller] = {
     "drl-reversed": Controller("drl-reversed", ("policy", "--model", "reversed"), "policy",
                                "racecav.services.policy.service", _policy_model("reversed"),
@@ -62,10 +70,11 @@ CONTROLLERS: dict[str, Controller] = {
                               "racecav.services.policy.service", _policy_model("default"), "DRL default"),
     "mpc-apf": Controller("mpc-apf", ("baseline",), "baseline", "racecav.services.baseline.service",
                           None, "MPC-APF"),
-    # Reference without evasion: straight ahead at the throttle that holds ~1 m/s. Shows that the
-    # scenarios are real conflicts, and lets the harness be tested before the controllers exist.
-    "scripted": Controller("scripted", ("scripted", "--program", "0.4,0.0,1000000"), "scripted",
-                           "racecav.services.sim.scripted", None, "no evasion (straight, scripted)"),
+    # Reference without evasion: straight ahead at the throttle that holds 1 m/s (the scenarios'
+    # ego start speed). Shows that the scenarios are real conflicts, and lets the harness be
+    # tested before the controllers exist.
+    "scripted": Controller("scripted", ("scripted", "--program", f"{_hold_speed_throttle(1.0):.4f},0.0,100000000"),
+                           "scripted", "racecav.services.sim.scripted", None, "no evasion (straight 1 m/s, scripted)"),
 }
 TABLE_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed")
 
