@@ -215,6 +215,9 @@ class EnvConfig(Section):
     the speed of the cars its policy will drive)."""
     n_envs: int = Field(64, ge=1)
     """Worlds stepped together by the fast VecEnv."""
+    parallel: bool = False
+    """Fast backend: lidar on numba's threads (faster with a free core; contention when several
+    runs share the 2 cores)."""
 
 
 class PolicyConfig(Section):

@@ -264,3 +264,13 @@ def test_ppo_runs_on_the_fast_vecenv():
     assert model.num_timesteps >= 4096
     act, _ = model.predict(venv.reset(), deterministic=True)
     assert act.shape == (16, 2)
+
+
+def test_parallel_lidar_gives_the_same_scans():
+    worlds = [FastWorld(n_envs=4, obstacle_lidar=True, seed=0, parallel=p) for p in (False, True)]
+    acts = np.random.default_rng(0).uniform(-1, 1, (10, 4, 2))
+    for fw in worlds:
+        fw.reset()
+        for a in acts:
+            fw.step(a)
+    assert np.array_equal(worlds[0].ranges, worlds[1].ranges)

@@ -37,11 +37,11 @@ def _windows(step_fn, seconds: float, per_step: int, window: float = 0.5) -> lis
     return rates
 
 
-def fast_all_lidar(n_envs: int, seconds: float, seed: int = 0) -> list[float]:
+def fast_all_lidar(n_envs: int, seconds: float, seed: int = 0, parallel: bool = False) -> list[float]:
     """FastWorld, 15 obstacle cars + agent, lidar on every car; collided worlds reset."""
     from racecav.services.sim.fast_world import FastWorld
 
-    fw = FastWorld(n_envs=n_envs, n_obstacles=15, obstacle_lidar=True, seed=seed)
+    fw = FastWorld(n_envs=n_envs, n_obstacles=15, obstacle_lidar=True, seed=seed, parallel=parallel)
     fw.reset()
     rng = np.random.default_rng(seed)
     acts = np.stack([rng.uniform(0, 1, (256, n_envs)), rng.uniform(-0.3, 0.3, (256, n_envs))], -1)
@@ -123,6 +123,8 @@ def run(args: argparse.Namespace, cfg) -> int:
     load_before = os.getloadavg()[0]
     print(f"fast, 1 process, {n} worlds x 16 cars, all lidars ...", flush=True)
     f1 = summarize(fast_all_lidar(n, sec))
+    print("fast, 1 process, lidar on numba threads ...", flush=True)
+    fp = summarize(fast_all_lidar(n, sec, parallel=True))
     print("fast, 2 processes ...", flush=True)
     two = fast_two_processes(n, sec)
     f2 = summarize([sum(r) for r in zip(*two)])
@@ -133,13 +135,14 @@ def run(args: argparse.Namespace, cfg) -> int:
     b_all = summarize(bullet(args.bullet_seconds, True))
     b_one = summarize(bullet(args.bullet_seconds, False))
     ratio = f1["median"] / b_all["median"]
-    results = {"fast_1proc_all_lidar": f1, "fast_2proc_all_lidar_total": f2,
+    results = {"fast_1proc_all_lidar": f1, "fast_1proc_all_lidar_numba_threads": fp, "fast_2proc_all_lidar_total": f2,
                "fast_vecenv_training_config": fv, "bullet_all_lidar": b_all,
                "bullet_agent_lidar": b_one, "ratio_fast_1proc_vs_bullet_all_lidar": ratio,
                "fast_2proc_per_process_median": per_proc, "load_average_1min_before": load_before,
                "n_envs": n, "targets": {"per_core": 5000, "ratio": 80}}
     rows = [
         [f"fast, 1 process ({n} worlds x 16 cars, every car's lidar)", f"{f1['median']:,.0f}", f"{f1['min']:,.0f}", ">= 5,000"],
+        [f"fast, 1 process, lidar on numba's threads (`parallel=True`)", f"{fp['median']:,.0f}", f"{fp['min']:,.0f}", ""],
         [f"fast, 2 processes together (total; each: {per_proc[0]:,.0f} / {per_proc[1]:,.0f})",
          f"{f2['median']:,.0f}", f"{f2['min']:,.0f}", ">= 10,000"],
         [f"fast VecEnv, training config (centerline traffic, agent lidar)", f"{fv['median']:,.0f}", f"{fv['min']:,.0f}", ""],

@@ -68,7 +68,7 @@ def make_world(settings: EnvConfig, n_envs: int = 1, seed: int | None = None, dr
         return FastWorld(n_envs=n_envs, world=settings.world, car=settings.car,
                          n_obstacles=settings.n_obstacles, heading=settings.heading, driver=driver,
                          agent_speed_scale=scale, control_period=settings.control_period_s,
-                         seed=seed)
+                         seed=seed, parallel=settings.parallel)
     if n_envs != 1:
         raise ValueError("backend: the bullet backend runs one world per env")
     return BulletBackend(settings, driver=driver, seed=seed)

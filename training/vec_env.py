@@ -24,7 +24,8 @@ class FastVecEnv(VecEnv):
 
     :param n_envs: worlds in the batch (default: config env.n_envs).
     :param config: EnvConfig to start from; keyword overrides as in OvertakeEnv (heading,
-        n_obstacles, driver, control_period, time_limit, world, car, agent_speed_scale).
+        n_obstacles, driver, control_period, time_limit, world, car, agent_speed_scale,
+        parallel: the lidar on numba's threads).
     :param seed: seed of the reset randomisation (also settable with ``seed()``).
     """
 
@@ -32,14 +33,15 @@ class FastVecEnv(VecEnv):
                  heading: str | None = None, n_obstacles: int | None = None, driver=None,
                  control_period: float | None = None, time_limit: float | None = None,
                  world: str | None = None, car: str | None = None,
-                 agent_speed_scale: float | None = None, seed: int | None = None):
+                 agent_speed_scale: float | None = None, parallel: bool | None = None,
+                 seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
                                      driver=driver if isinstance(driver, str) else None,
                                      control_period_s=control_period, time_limit_s=time_limit,
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
-                                     n_envs=n_envs)
+                                     n_envs=n_envs, parallel=parallel)
         n = self.settings.n_envs
         self.world = make_world(self.settings, n_envs=n, seed=seed, driver=drv_obj)
         spec = self.world.spec

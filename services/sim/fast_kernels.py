@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 EPS_AHEAD = 1e-3  # m: segments are clipped to x >= EPS_AHEAD in the sensor frame
 
@@ -141,68 +141,90 @@ def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, ray_t
         within range_max (the Scan message's convention).
     """
     N, C = x.shape
+    buf = np.empty(ray_c.shape[0])
+    for n in range(N):
+        for c in range(C):
+            if observe[n, c]:
+                _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_t,
+                          amin, inc, range_max, buf, out)
+
+
+@njit(cache=True, fastmath=True, parallel=True)
+def lidar_parallel(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, ray_t, amin,
+                   inc, range_max, out):
+    """:func:`lidar` with the scans spread over numba's threads."""
+    N, C = x.shape
+    for k in prange(N * C):
+        n = k // C
+        c = k % C
+        if observe[n, c]:
+            buf = np.empty(ray_c.shape[0])
+            _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_t,
+                      amin, inc, range_max, buf, out)
+
+
+@njit(cache=True, fastmath=True)
+def _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_t, amin, inc,
+              range_max, buf, out):
+    """The scan of car c of world n into out[n, c] (``buf``: work array of n_rays)."""
+    C = x.shape[1]
     M = faces.shape[0]
     R = ray_c.shape[0]
     inv_inc = 1.0 / inc
-    buf = np.empty(R)
-    for n in range(N):
-        for c in range(C):
-            if not observe[n, c]:
-                continue
-            cy = math.cos(yaw[n, c])
-            sy = math.sin(yaw[n, c])
-            sx = x[n, c] + cy * mount[0] - sy * mount[1]
-            sy_ = y[n, c] + sy * mount[0] + cy * mount[1]
-            syaw = yaw[n, c] + mount[2]
-            ca = math.cos(syaw)
-            sa = math.sin(syaw)
-            for i in range(R):
-                buf[i] = range_max
-            # first / last ray directions in the world frame (fan cull before rotating)
-            wc0 = ca * ray_c[0] - sa * ray_s[0]
-            ws0 = sa * ray_c[0] + ca * ray_s[0]
-            wc1 = ca * ray_c[R - 1] - sa * ray_s[R - 1]
-            ws1 = sa * ray_c[R - 1] + ca * ray_s[R - 1]
-            for m in range(M):
-                ax = faces[m, 0] - sx
-                ay = faces[m, 1] - sy_
-                bx = faces[m, 2] - sx
-                by = faces[m, 3] - sy_
-                # back face (the cross product is rotation invariant): not seen
-                if ax * (by - ay) - ay * (bx - ax) >= 0.0:
-                    continue
-                # both ends beyond range on one side: cannot be seen
-                if (ax > range_max and bx > range_max) or (ax < -range_max and bx < -range_max):
-                    continue
-                if (ay > range_max and by > range_max) or (ay < -range_max and by < -range_max):
-                    continue
-                # outside the fan of rays (both ends beyond the first or the last ray's line)
-                if wc0 * ay - ws0 * ax < 0.0 and wc0 * by - ws0 * bx < 0.0:
-                    continue
-                if wc1 * ay - ws1 * ax > 0.0 and wc1 * by - ws1 * bx > 0.0:
-                    continue
-                pax = ca * ax + sa * ay
-                pay = -sa * ax + ca * ay
-                pbx = ca * bx + sa * by
-                pby = -sa * bx + ca * by
-                _raster(buf, pax, pay, pbx, pby, ray_c, ray_s, ray_t, amin, inv_inc, R)
-            for j in range(C):
-                if j == c or not active[n, j]:
-                    continue
-                ddx = corners[n, j, 0, 0] - sx
-                ddy = corners[n, j, 0, 1] - sy_
-                if ddx * ddx + ddy * ddy > (range_max + 1.0) ** 2:
-                    continue
-                for k in range(4):
-                    k2 = (k + 1) % 4
-                    ax = corners[n, j, k, 0] - sx
-                    ay = corners[n, j, k, 1] - sy_
-                    bx = corners[n, j, k2, 0] - sx
-                    by = corners[n, j, k2, 1] - sy_
-                    _raster(buf, ca * ax + sa * ay, -sa * ax + ca * ay, ca * bx + sa * by,
-                            -sa * bx + ca * by, ray_c, ray_s, ray_t, amin, inv_inc, R)
-            for i in range(R):
-                out[n, c, i] = buf[i] if buf[i] < range_max else np.inf
+    cy = math.cos(yaw[n, c])
+    sy = math.sin(yaw[n, c])
+    sx = x[n, c] + cy * mount[0] - sy * mount[1]
+    sy_ = y[n, c] + sy * mount[0] + cy * mount[1]
+    syaw = yaw[n, c] + mount[2]
+    ca = math.cos(syaw)
+    sa = math.sin(syaw)
+    for i in range(R):
+        buf[i] = range_max
+    # first / last ray directions in the world frame (fan cull before rotating)
+    wc0 = ca * ray_c[0] - sa * ray_s[0]
+    ws0 = sa * ray_c[0] + ca * ray_s[0]
+    wc1 = ca * ray_c[R - 1] - sa * ray_s[R - 1]
+    ws1 = sa * ray_c[R - 1] + ca * ray_s[R - 1]
+    for m in range(M):
+        ax = faces[m, 0] - sx
+        ay = faces[m, 1] - sy_
+        bx = faces[m, 2] - sx
+        by = faces[m, 3] - sy_
+        # back face (the cross product is rotation invariant): not seen
+        if ax * (by - ay) - ay * (bx - ax) >= 0.0:
+            continue
+        # both ends beyond range on one side: cannot be seen
+        if (ax > range_max and bx > range_max) or (ax < -range_max and bx < -range_max):
+            continue
+        if (ay > range_max and by > range_max) or (ay < -range_max and by < -range_max):
+            continue
+        # outside the fan of rays (both ends beyond the first or the last ray's line)
+        if wc0 * ay - ws0 * ax < 0.0 and wc0 * by - ws0 * bx < 0.0:
+            continue
+        if wc1 * ay - ws1 * ax > 0.0 and wc1 * by - ws1 * bx > 0.0:
+            continue
+        pax = ca * ax + sa * ay
+        pay = -sa * ax + ca * ay
+        pbx = ca * bx + sa * by
+        pby = -sa * bx + ca * by
+        _raster(buf, pax, pay, pbx, pby, ray_c, ray_s, ray_t, amin, inv_inc, R)
+    for j in range(C):
+        if j == c or not active[n, j]:
+            continue
+        ddx = corners[n, j, 0, 0] - sx
+        ddy = corners[n, j, 0, 1] - sy_
+        if ddx * ddx + ddy * ddy > (range_max + 1.0) ** 2:
+            continue
+        for k in range(4):
+            k2 = (k + 1) % 4
+            ax = corners[n, j, k, 0] - sx
+            ay = corners[n, j, k, 1] - sy_
+            bx = corners[n, j, k2, 0] - sx
+            by = corners[n, j, k2, 1] - sy_
+            _raster(buf, ca * ax + sa * ay, -sa * ax + ca * ay, ca * bx + sa * by,
+                    -sa * bx + ca * by, ray_c, ray_s, ray_t, amin, inv_inc, R)
+    for i in range(R):
+        out[n, c, i] = buf[i] if buf[i] < range_max else np.inf
 
 
 def wall_faces(walls: np.ndarray, half_thickness: float, extend: float = 0.0) -> np.ndarray:
