@@ -274,3 +274,12 @@ def test_parallel_lidar_gives_the_same_scans():
         for a in acts:
             fw.step(a)
     assert np.array_equal(worlds[0].ranges, worlds[1].ranges)
+
+
+def test_non_finite_actions_are_counted_and_neutralised():
+    fw = FastWorld(n_envs=2, n_obstacles=0, seed=0)
+    fw.reset()
+    obs, (thr, a_d), col, _ = fw.step(np.array([[np.nan, 0.2], [1.0, np.inf]]))
+    assert fw.bad_actions == 2
+    assert np.isfinite(fw.agent_state).all() and np.isfinite(obs).all()
+    assert thr[0] == 0.0 and a_d[1] == 1.0

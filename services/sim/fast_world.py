@@ -203,6 +203,7 @@ class FastWorld:
         self.actions = f((N, C, 2))
         self.time = f(N)
         self.respawns = 0
+        self.bad_actions = 0  # non-finite agent actions replaced by 0 (counted)
         self.rng = np.random.default_rng(seed)
 
     def set_bicycle(self, b) -> None:
@@ -273,6 +274,9 @@ class FastWorld:
             ``wall`` / ``car`` contact flags and the number of obstacle respawns this step.
         """
         a = np.asarray(actions, dtype=np.float64).reshape(self.n_envs, 2)
+        if not np.isfinite(a).all():  # a diverged policy must not poison the world's state
+            self.bad_actions += int((~np.isfinite(a)).any(axis=1).sum())
+            a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=-1.0)
         self.actions[:, 0] = a
         if self.n_cars > 1:
             self.actions[:, 1:] = self.driver(self)
