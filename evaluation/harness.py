@@ -293,27 +293,38 @@ class Harness:
         budget = 60.0 + (self.duration_s / self.rtf if self.mode == "realtime" and self.rtf > 0 else 0.0) + 1.0 * n_steps
         deadline = time.monotonic() + budget
 
-        def ended(rec: Recorder) -> bool:
-            st = rec.states.get(max(rec.states, default=-1))
-            if st is None or st.seq < first or first not in rec.states:
-                return False
-            t = (st.stamp_ns - rec.states[first].stamp_ns) * 1e-9
-            return st.collided or t >= self.duration_s - 1e-6
+        period = self.car.control_period_s
 
-        while not self.recorder.wait_for(ended, timeout=0.5):
-            self._check_procs()
-            if time.monotonic() > deadline:
-                raise HarnessError(f"trial {index} (seed {seed}) did not end within {budget:.0f} s wall; "
-                                   f"sim status {self._safe_status()}")
-        # the sim's own verdict (its status is snapshotted right after the last state was published)
-        info: dict = {}
-        for _ in range(100):
+        def ended(rec: Recorder) -> bool:
+            # seq k of the episode is trial time (k - first) * period (republished scans and
+            # states keep their seq), so a lost sample does not hide the end
+            last = max(rec.states, default=-1)
+            if last < first:
+                return False
+            return rec.states[last].collided or (last - first) * period >= self.duration_s - 1e-6
+
+        def sim_done() -> dict | None:
             info = self.status_info()
-            if info.get("episode") == episode and info.get("done"):
-                break
-            time.sleep(0.01)
-        else:
-            raise HarnessError(f"trial {index}: sim never reported the episode done: {info}")
+            return info if info.get("episode") == episode and info.get("done") else None
+
+        info = None
+        while info is None:
+            if self.recorder.wait_for(ended, timeout=0.5):
+                # the sim's own verdict (its status is snapshotted right after the last state)
+                for _ in range(100):
+                    info = sim_done()
+                    if info is not None:
+                        break
+                    time.sleep(0.01)
+                else:
+                    raise HarnessError(f"trial {index}: the sim never reported the episode done: "
+                                       f"{self._safe_status()}")
+            else:  # nothing new for 0.5 s: a lost last sample? a dead process? out of time?
+                self._check_procs()
+                info = sim_done()
+                if info is None and time.monotonic() > deadline:
+                    raise HarnessError(f"trial {index} (seed {seed}) did not end within {budget:.0f} s wall; "
+                                       f"sim status {self._safe_status()}")
         last = int(info["seq"])
         self.recorder.wait_for(lambda r: last in r.states and last in r.obstacles, timeout=2.0)
         states, obs, scans, cmds = self.recorder.take(first, last)
