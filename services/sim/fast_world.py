@@ -30,6 +30,8 @@ from racecav.services.sim import fast_kernels as K
 CENTERLINE_DS = 0.05  # m, spacing of the dense centerline table used by resets and traffic
 RESPAWN_TRIES = 24
 RESPAWN_MIN_DIST = 2.5  # m from every other car when an obstacle car is respawned
+RESET_YAW_NOISE = 0.1  # rad, +- around the centerline direction at a reset
+OBSTACLE_SPEED_FRACTION = (0.55, 1.0)  # each obstacle car's cruise speed / top speed, uniform
 GRAVITY = 9.81
 V_KIN = 0.3  # m/s: below this speed the single-track model is kinematic (tyre model singular)
 
@@ -235,7 +237,8 @@ class FastWorld:
         for i, n in enumerate(envs):
             K.place_world(int(n), self.x, self.y, self.yaw, self.v, self.w, self.delta, self.cl_idx,
                           self.lane_offset, self.vfac, self.active, self.cl, self.cl_ds, u[i],
-                          self.n_cars, self.heading == "reversed", self.lat_max, 0.1, 0.55, 1.0)
+                          self.n_cars, self.heading == "reversed", self.lat_max, RESET_YAW_NOISE,
+                          *OBSTACLE_SPEED_FRACTION)
         self.delta_cmd[envs] = 0.0
         self.beta[envs] = 0.0
         self.r[envs] = 0.0
@@ -246,7 +249,12 @@ class FastWorld:
 
     def set_state(self, env: int, car: int = 0, *, x=None, y=None, yaw=None, v=None, w=None,
                   delta=None) -> None:
-        """Set one car's state (parity tests, scripted scenes); rescans that world."""
+        """Set one car's state (parity tests, scripted scenes); rescans that world.
+
+        :param v: speed (m/s); the wheel state ``w`` follows it unless given.
+        """
+        if v is not None and w is None:
+            w = v / (self.car.wheel_radius * self.speed_scale[env, car])
         for name, val in (("x", x), ("y", y), ("yaw", yaw), ("v", v), ("w", w), ("delta", delta)):
             if val is not None:
                 getattr(self, name)[env, car] = val
@@ -291,8 +299,8 @@ class FastWorld:
             K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
                         self.delta_cmd, self.w, self.speed_scale, self.active, car.wheel_radius,
                         car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
-                        self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub, self.scrub_lat, V_KIN,
-                        self.dt)
+                        self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub,
+                        self.scrub_lat, V_KIN, self.dt)
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
                        self.corners, self.hx, self.hy, self.wall_r, self.check, self.wall_hit,
@@ -301,9 +309,7 @@ class FastWorld:
         self.time += self.control_period
         collided = self.wall_hit[:, 0] | (self.car_hit[:, 0] >= 0)
         respawned = self._respawn_obstacles(collided)
-        self._lidar(self.x, self.y, self.yaw, self.active, self.observe, self.faces, self.corners,
-                self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min, self.spec.angle_increment,
-                self.spec.range_max, self.ranges)
+        self._scan_all(self.observe)
         a_d = np.clip(a[:, 1], -1.0, 1.0)
         info = {"wall": self.wall_hit[:, 0].copy(), "car": self.car_hit[:, 0].copy(),
                 "respawned": respawned}
@@ -334,12 +340,16 @@ class FastWorld:
         return int(ns.size)
 
     def _scan(self, envs: np.ndarray) -> None:
+        """Rescan the worlds ``envs`` (after a reset or a set_state)."""
         K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
         observe = np.zeros_like(self.observe)
         observe[envs] = self.observe[envs]
+        self._scan_all(observe)
+
+    def _scan_all(self, observe: np.ndarray) -> None:
         self._lidar(self.x, self.y, self.yaw, self.active, observe, self.faces, self.corners,
-                self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min, self.spec.angle_increment,
-                self.spec.range_max, self.ranges)
+                    self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min,
+                    self.spec.angle_increment, self.spec.range_max, self.ranges)
 
     # ------------------------------------------------------------------ views
     def agent_obs(self) -> np.ndarray:
@@ -355,8 +365,3 @@ class FastWorld:
     def agent_state(self) -> np.ndarray:
         """(N, 4) agent x, y, yaw, v."""
         return np.stack([self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.v[:, 0]], axis=1)
-
-    def progress(self) -> np.ndarray:
-        """(N,) index of each agent on the dense centerline times its spacing (m, mod lap)."""
-        idx = np.array([K.global_nearest(self.x[n, 0], self.y[n, 0], self.cl) for n in range(self.n_envs)])
-        return idx * self.cl_ds
