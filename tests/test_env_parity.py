@@ -11,9 +11,9 @@ from racecav.common.vehicle import load_car
 from racecav.common.world import load_world
 from racecav.services.sim.fast_world import FastWorld
 from racecav.training.env import BulletBackend
-from racecav.training.fit_bicycle import (DESIGNED, bullet_rollouts, designed_actions,
-                                          fast_rollouts, open_floor_scenario, position_errors,
-                                          random_actions)
+from racecav.training.fit_bicycle import (DESIGNED, bullet_rollouts, closed_loop,
+                                          designed_actions, fast_rollouts, open_floor_scenario,
+                                          position_errors, random_actions)
 
 T = 30  # 3 s of 0.1 s control periods
 
@@ -133,3 +133,16 @@ def test_car_ranges_parity():
         assert np.median(d) < 0.02 and np.mean(d < 0.02) > 0.9, (np.median(d), np.mean(d < 0.02))
     finally:
         bw.close()
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.5])
+def test_closed_loop_parity(scale):
+    """A lidar-feedback controller sees the same scans and drives the same way in both backends:
+    it hits the wall at the same control step, having stayed within 10 cm until then."""
+    car = load_car()
+    tb, tf, hit = closed_loop(car, scale, steps=250)
+    assert hit[0] is not None and hit[1] is not None  # this controller does crash, eventually
+    assert abs(hit[0] - hit[1]) <= 2
+    end = min(hit)
+    assert end >= 50  # several seconds of driving before
+    assert np.hypot(*(tb[:end, :2] - tf[:end, :2]).T).max() < 0.10
