@@ -115,9 +115,15 @@ def test_non_controller_accounts_never_reach_the_actuator(car, tmp_path):
             time.sleep(0.3)
 
             def drive(session, source, throttle, n=15):
-                for k in range(n):
-                    session.put(cmd_key, command(source, k, throttle))
-                    time.sleep(0.02)
+                # A declared express publisher, as the controllers use (it only sends once it
+                # has heard of the actuator's subscription: the ACL must let that through).
+                pub = session.declare_publisher(cmd_key, express=True)
+                try:
+                    for k in range(n):
+                        pub.put(command(source, k, throttle))
+                        time.sleep(0.02)
+                finally:
+                    pub.undeclare()
 
             drive(pol, "policy", 0.5)  # the controller's commands reach the motor
             assert wait_until(lambda: info()["accepted"] >= 10, timeout=5)
