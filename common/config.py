@@ -253,7 +253,7 @@ class BaselineConfig(Section):
     """A VehicleState older than this (wall clock) is not used (auto falls back to the model)."""
     horizon: int = Field(10, ge=2, le=50)
     """Prediction steps (paper: 10)."""
-    dt: float = Field(0.15, gt=0)
+    dt: float = Field(0.2, gt=0)
     """Prediction step (s): horizon * dt is the look-ahead."""
     v_ref: float = Field(1.0, ge=0)
     """Target speed (m/s) of the speed-tracking term."""
@@ -288,7 +288,12 @@ class BaselineConfig(Section):
     solver: Literal["sqp", "ipopt"] = "sqp"
     """sqp: casadi sqpmethod + qrqp (fast); ipopt: interior point (slower, reference)."""
     max_iter: int = Field(20, ge=1)
-    """Solver iteration limit per control step."""
+    """Solver iteration limit per solve."""
+    multi_start: bool = False
+    """Also solve from hard-left and hard-right initial guesses when something is near, keep the
+    cheapest (the APF cost is non-convex; a single warm start finds only the nearest way)."""
+    multi_start_range: float = Field(2.0, gt=0)
+    """m: a moving obstacle, or a boundary point closer than this, triggers the multi-start."""
     perception_range: float = Field(6.0, gt=0)
     """Lidar returns farther than this (m) are ignored by the baseline's perception."""
 

@@ -227,23 +227,44 @@ class MpcApf:
         return np.concatenate([z0, lin, np.asarray(lane, np.float64), [v_ref],
                                self.u_applied, obs.ravel(), bnd.ravel()])
 
-    def solve(self, p: np.ndarray) -> MpcResult:
-        """Solve with warm start; the first input is applied (remembered for the rate cost)."""
-        w0 = self.u if self.condensed else np.concatenate([self.u, self.z_guess])
+    def _starts(self) -> list[np.ndarray]:
+        """Initial guesses: the shifted previous solution, then hard left and hard right with the
+        throttle off (the APF cost is non-convex: a local solver started straight at an obstacle
+        only slides down the nearest slope; the other starts find the way around the far side)."""
+        N, car = self.N, self.car
+        return [self.u, np.tile([0.0, car.delta_max], N), np.tile([0.0, car.delta_min], N)]
+
+    def solve(self, p: np.ndarray, multi_start: bool = False) -> MpcResult:
+        """Solve with warm start (and, with ``multi_start``, from the other initial guesses of
+        :meth:`_starts`, keeping the cheapest converged solution); the first input is applied
+        (remembered for the rate cost). Iterations and time are totals over all starts."""
+        starts = self._starts() if multi_start else [self.u]
+        z0 = p[:5]
         t0 = time.perf_counter()
-        sol = self.solver(x0=w0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.g_lb, ubg=self.g_ub,
-                          lam_x0=self.lam_x, lam_g0=self.lam_g)
+        best, iters = None, 0
+        for k, u0 in enumerate(starts):
+            pk = p
+            if k > 0:  # linearise about this start's own rollout
+                pk = p.copy()
+                pk[5:5 + 3 * self.N] = self.rollout(z0, u0)[:-1, [2, 3, 4]].ravel()
+            w0 = u0 if self.condensed else np.concatenate([u0, self.rollout(z0, u0)[1:].ravel()])
+            lam = dict(lam_x0=self.lam_x, lam_g0=self.lam_g) if k == 0 else {}
+            sol = self.solver(x0=w0, p=pk, lbx=self.lbx, ubx=self.ubx, lbg=self.g_lb, ubg=self.g_ub, **lam)
+            st = self.solver.stats()
+            iters += int(st.get("iter_count", 0))
+            w = np.asarray(sol["x"]).ravel()
+            ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(w)))
+            f = float(sol["f"]) if np.isfinite(float(sol["f"])) else math.inf
+            cand = (not ok, f, k, w if np.all(np.isfinite(w)) else w0, sol, pk, str(st.get("return_status", "")), ok)
+            if best is None or cand[:2] < best[:2]:
+                best = cand
         solve_s = time.perf_counter() - t0
-        st = self.solver.stats()
-        w = np.asarray(sol["x"]).ravel()
-        ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(w)))
-        if not np.all(np.isfinite(w)):
-            w = w0
+        _, f, k, w, sol, pk, status, ok = best
         u = np.clip(w[: self.nu], self.lbx[: self.nu], self.ubx[: self.nu])
         if self.condensed:
-            x_pred = np.vstack([p[:5], np.asarray(self.states_fn(u, p))])
+            x_pred = np.vstack([pk[:5], np.asarray(self.states_fn(u, pk))])
         else:
-            x_pred = np.vstack([p[:5], w[self.nu:].reshape(self.N, 5)])
+            x_pred = np.vstack([pk[:5], w[self.nu:].reshape(self.N, 5)])
         # warm start of the next step: shift by one, repeat the last input
         self.u = np.concatenate([u[2:], u[-2:]])
         lam_x = np.asarray(sol["lam_x"]).ravel()
@@ -253,5 +274,5 @@ class MpcApf:
                                     + ([] if self.condensed else [lam_x[self.nu + 5:], lam_x[-5:]]))
         self.lam_g = np.concatenate([lam_g[ng:], lam_g[-ng:]])
         self.u_applied = u[:2].copy()
-        return MpcResult(float(u[0]), float(u[1]), int(st.get("iter_count", -1)), solve_s, ok,
-                         str(st.get("return_status", "")), float(sol["f"]), x_pred)
+        self.last_start = k
+        return MpcResult(float(u[0]), float(u[1]), iters, solve_s, ok, status, f, x_pred)

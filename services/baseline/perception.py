@@ -6,18 +6,20 @@ policy sees, in the odometry frame.
 2. Clustering: consecutive rays belong together while neighbouring points are closer than
    ``gap_m + gap_k * range * angle_increment`` (range-adaptive; up to ``max_skip`` rays without
    return may be bridged).
-3. Classification by size: a cluster no longer than ``max_obstacle_extent`` is an obstacle
-   candidate (a car shows at most an L of 0.55 + 0.30 m); longer clusters are walls/curbs.
+3. Classification: a cluster no longer than ``max_obstacle_extent`` (a car shows at most an L
+   of 0.55 + 0.30 m), not cut off by the range limit, is an obstacle candidate; longer ones are
+   walls/curbs. Each candidate gets free-space evidence: the fraction of its points that the
+   previous scan saw through (its ray went farther): something moved in there.
 4. Tracking: nearest-neighbour association of candidates to tracks (gated around the constant-
    velocity prediction), an alpha-beta filter for position and velocity (constant-velocity model);
    a track unseen while it should be visible is dropped after ``max_misses`` scans; one that left
    the field of view coasts for ``coast_s`` (it may still be beside the car).
-5. Output: tracks seen ``confirm_hits`` times and faster than ``moving_speed`` are moving
-   obstacles (predicted over the horizon by the MPC); the points of every other cluster (walls,
+5. Output: tracks seen ``confirm_hits`` times, faster than ``moving_speed`` and with
+   ``dynamic_hits`` detections in previously free space are moving obstacles (predicted over the horizon by the MPC); the points of every other cluster (walls,
    curbs, parked cars, corners: whatever does not move) become static boundary points, evenly
-   spaced along each cluster. A car standing still is thus avoided like a wall, and centroid
-   jitter of a wall fragment (its visible part changes as the ego moves) cannot fake a fast
-   obstacle unless it persists.
+   spaced along each cluster. A car standing still is thus avoided like a wall, and a wall
+   fragment whose visible part slides as the ego moves (occlusion, field of view) cannot fake a
+   moving obstacle: its new points were never seen free.
 """
 
 from __future__ import annotations
@@ -51,13 +53,20 @@ class PerceptionParams:
     """Association gate (m) around a track's predicted position."""
     alpha: float = 0.5
     """Alpha-beta filter position gain."""
-    beta: float = 0.2
+    beta: float = 0.1
     """Alpha-beta filter velocity gain."""
     max_speed: float = 4.0
     """Velocity estimates are clipped to this (m/s): association glitches must not fling tracks."""
     confirm_hits: int = 3
     moving_speed: float = 0.5
-    """m/s: a confirmed track at least this fast is a moving obstacle; slower ones are static."""
+    """m/s: a confirmed track at least this fast ..."""
+    dynamic_hits: int = 2
+    """... with at least this many detections standing where the previous scan saw free space
+    is a moving obstacle; everything else is static."""
+    free_margin: float = 0.1
+    """m: a point counts as previously free if the previous ray went this much farther."""
+    free_fraction: float = 0.1
+    """Fraction of a cluster's points previously free for a detection to count as dynamic."""
     max_misses: int = 3
     coast_s: float = 1.0
 
@@ -77,6 +86,9 @@ class Track:
     """Time (s) of the last update (scan clock)."""
     last_seen: float = 0.0
     extent: float = 0.0
+    dynamic: int = 0
+    """Detections that stood in previously free space."""
+    moving: bool = False
 
     @property
     def speed(self) -> float:
@@ -141,13 +153,16 @@ class Perception:
         self.half_fov = spec.fov / 2
         self.tracks: list[Track] = []
         self._next_id = 1
+        self._prev = None
 
     def reset(self) -> None:
         self.tracks = []
+        self._prev = None
 
-    def detect(self, ranges: np.ndarray, pose) -> tuple[list[tuple[np.ndarray, float]], list[np.ndarray]]:
-        """Obstacle candidates [(centre (2,), extent)] and every cluster's evenly spaced points
-        [(k, 2)] (index-aligned: candidate j is cluster ``self._cand_cluster[j]``), odometry frame."""
+    def detect(self, ranges: np.ndarray, pose) -> tuple[list[tuple[np.ndarray, float, float]], list[np.ndarray]]:
+        """Obstacle candidates [(centre (2,), extent, free-space evidence)] and every cluster's
+        evenly spaced points [(k, 2)] (candidate j is cluster ``self._cand_cluster[j]``), odometry
+        frame."""
         p = self.p
         pts, idx, r = scan_points(ranges, self.angles, self.car, p.max_range)
         groups = cluster(pts, idx, r, self.car.lidar.angle_increment, p)
@@ -157,18 +172,42 @@ class Perception:
         for gi, g in enumerate(groups):
             q = pts[g]
             extent = float(np.hypot(*(q.max(0) - q.min(0))))
+            qw = to_frame(q, pose)
             # a cluster cut off by the range limit slides along with the ego: never a candidate
             if extent <= p.max_obstacle_extent and r[g].max() < p.max_range - 0.3:
                 c = q.mean(0)
                 ray = c - np.array([m.x, m.y])
                 c = c + p.centre_offset * ray / max(np.linalg.norm(ray), 1e-6)
-                cands.append((to_frame(c[None], pose)[0], extent))
+                cands.append((to_frame(c[None], pose)[0], extent, self._free_before(qw)))
                 self._cand_cluster.append(gi)
             # evenly spaced along the cluster (arc length)
             s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(q, axis=0).T))])
             keep = np.searchsorted(s, np.arange(0.0, s[-1] + 1e-9, p.boundary_spacing))
-            samples.append(to_frame(q[np.unique(np.minimum(keep, len(q) - 1))], pose))
+            samples.append(qw[np.unique(np.minimum(keep, len(q) - 1))])
+        self._prev = (np.asarray(ranges, np.float64), to_frame(np.array([[m.x, m.y]]), pose)[0],
+                      pose[2] + m.yaw)
         return cands, samples
+
+    def _free_before(self, points: np.ndarray) -> float:
+        """Fraction of ``points`` (odometry frame) that the previous scan saw as free space: its
+        ray in that direction went on beyond the point. Something standing there now moved in;
+        a piece of wall appearing from behind an occluder (or entering the field of view) was
+        not seen free before, so it gives no evidence of motion."""
+        if self._prev is None:
+            return 0.0
+        prev, sensor, heading = self._prev
+        d = points - sensor
+        rng = np.hypot(d[:, 0], d[:, 1])
+        ang = (np.arctan2(d[:, 1], d[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi
+        spec = self.car.lidar
+        k = np.rint((ang - spec.angle_min) / spec.angle_increment).astype(int)
+        inside = (k >= 0) & (k < len(prev))
+        if not inside.any():
+            return 0.0
+        before = prev[np.clip(k, 0, len(prev) - 1)]
+        before = np.where(np.isfinite(before), before, np.inf)
+        free = inside & (before > rng + self.p.free_margin)
+        return float(free.sum()) / len(points)
 
     def _visible(self, tr: Track, pose) -> bool:
         """Whether a track's position lies inside the lidar's field of view and range."""
@@ -197,7 +236,7 @@ class Perception:
         # greedy nearest-neighbour association, closest pairs first
         pairs = []
         for i, tr in enumerate(self.tracks):
-            for j, (c, _e) in enumerate(cands):
+            for j, (c, _e, _f) in enumerate(cands):
                 d = float(np.hypot(c[0] - tr.x, c[1] - tr.y))
                 if d < p.gate_m:
                     pairs.append((d, i, j))
@@ -209,7 +248,7 @@ class Perception:
             used_t.add(i)
             used_c.add(j)
             assoc[j] = i
-            tr, (c, e) = self.tracks[i], cands[j]
+            tr, (c, e, free) = self.tracks[i], cands[j]
             dt = max(t - tr.last_seen, 1e-3)
             rx, ry = c[0] - tr.x, c[1] - tr.y
             if tr.hits == 1:  # second sighting: velocity from the two positions
@@ -227,7 +266,13 @@ class Perception:
             tr.misses = 0
             tr.last_seen = t
             tr.extent = e
-        moving_ids = {id(tr) for tr in self.tracks if tr.hits >= p.confirm_hits and tr.speed >= p.moving_speed}
+            tr.dynamic += free >= p.free_fraction
+        for tr in self.tracks:  # hysteresis: a moving track stays moving until it is nearly still
+            if tr.moving:
+                tr.moving = tr.speed >= p.moving_speed / 2
+            else:
+                tr.moving = tr.hits >= p.confirm_hits and tr.speed >= p.moving_speed and tr.dynamic >= p.dynamic_hits
+        moving_ids = {id(tr) for tr in self.tracks if tr.moving}
         moving_clusters = {self._cand_cluster[j] for j, i in assoc.items() if id(self.tracks[i]) in moving_ids}
         keep = []
         for i, tr in enumerate(self.tracks):
@@ -239,9 +284,10 @@ class Perception:
                 elif t - tr.last_seen > p.coast_s:
                     continue
             keep.append(tr)
-        for j, (c, e) in enumerate(cands):
+        for j, (c, e, free) in enumerate(cands):
             if j not in used_c:
-                keep.append(Track(self._next_id, float(c[0]), float(c[1]), t=t, last_seen=t, extent=e))
+                keep.append(Track(self._next_id, float(c[0]), float(c[1]), t=t, last_seen=t, extent=e,
+                                  dynamic=int(free >= p.free_fraction)))
                 self._next_id += 1
         self.tracks = keep
         ex, ey = pose[0], pose[1]

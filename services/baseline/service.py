@@ -130,13 +130,16 @@ class MpcApfController:
         lx, ly = R @ (np.array(self.lane[:2]) - origin)
         lane = (lx, ly, self.lane[2] - yaw)
         p = self.mpc.params((0.0, 0.0, 0.0, v, delta), lane, self.cfg.v_ref, obstacles, bnd)
-        res = self.mpc.solve(p)
+        # several initial guesses only when something is near: free driving stays cheap
+        near = bool(obstacles) or (len(bnd) and float(np.min(np.hypot(bnd[:, 0], bnd[:, 1]))) < self.cfg.multi_start_range)
+        res = self.mpc.solve(p, multi_start=self.cfg.multi_start and near)
         self.ego.command(res.throttle, res.steer_cmd)
         self.solve_ms.append(res.solve_s * 1e3)
         self.iters.append(res.iterations)
         self.failures += not res.success
         self.last = {"iterations": res.iterations, "solve_ms": round(res.solve_s * 1e3, 3),
                      "success": res.success, "status": res.status, "cost": round(res.cost, 4),
+                     "multi_start": bool(self.cfg.multi_start and near), "best_start": self.mpc.last_start,
                      "obstacles": len(obstacles), "tracks": len(self.perception.tracks),
                      "boundary_points": int(min(len(bnd), self.cfg.max_boundary_points)),
                      "ego_source": self.ego.source, "ego_speed": round(v, 3), "steer": round(delta, 4)}
