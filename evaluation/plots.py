@@ -55,6 +55,7 @@ def plot_trajectories(panels: list[tuple[Trial, str]], walls: list[np.ndarray], 
     n = len(panels)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n + 1.0, 4.6), squeeze=False)
     sc = None
+    tmax = max((max(p[0].trajectory.t) for p in panels if p[0].trajectory and p[0].trajectory.t), default=1.0)
     for ax, (trial, name), wl in zip(axes[0], panels, walls):
         tr = trial.trajectory
         if tr is None:
@@ -71,10 +72,10 @@ def plot_trajectories(panels: list[tuple[Trial, str]], walls: list[np.ndarray], 
             ax.plot([x0, x1], [y0, y1], color="0.35", lw=1.5)
         for o in tr.obstacles:
             o = np.asarray(o)
-            ax.scatter(o[:, 0], o[:, 1], c=t, cmap=_cmap("Reds"), vmin=0, vmax=t.max(), s=9, zorder=3)
+            ax.scatter(o[:, 0], o[:, 1], c=t, cmap=_cmap("Reds"), vmin=0, vmax=tmax, s=9, zorder=3)
             _outline(ax, *o[0], *car_size, "darkred", ":")
             _outline(ax, *o[-1], *car_size, "darkred")
-        sc = ax.scatter(ego[:, 0], ego[:, 1], c=t, cmap=_cmap("Greens"), vmin=0, vmax=t.max(), s=9, zorder=4)
+        sc = ax.scatter(ego[:, 0], ego[:, 1], c=t, cmap=_cmap("Greens"), vmin=0, vmax=tmax, s=9, zorder=4)
         _outline(ax, *ego[0], *car_size, "darkgreen", ":")
         _outline(ax, *ego[-1], *car_size, "darkgreen")
         ax.set_xlim(lo[0], hi[0])

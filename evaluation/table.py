@@ -155,8 +155,10 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
             cells += [cell_text(r) if r else "not run", _pct(paper[k]) if paper else "-"]
         lines.append(f"| {CONTROLLERS[n].label} | " + " | ".join(cells) + " |")
     lines += ["", "Success = no contact during the scenario's duration and at least its `min_progress_m` of "
-              "progress along the ego's road (common/scenario.py). \"No evasion\" drives straight at ~1 m/s: it "
-              "shows how many trials are real conflicts.", ""]
+              "progress along the ego's road (common/scenario.py). \"No evasion\" drives straight at 1 m/s: it "
+              "shows how many trials are real conflicts. The trial seeds are those of the in-process report of "
+              "the shipped policies (docs/training.md, `racecav train report`) and differ from the checkpoint-"
+              "selection seeds; the two should agree up to the latency the bus and lockstep charge here.", ""]
     # bar chart
     rows = []
     for n in names:
