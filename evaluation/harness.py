@@ -68,6 +68,9 @@ CONTROLLERS: dict[str, Controller] = {
                                "DRL reversed heading"),
     "drl-default": Controller("drl-default", ("policy", "--model", "default"), "policy",
                               "racecav.services.policy.service", _policy_model("default"), "DRL default"),
+    "drl-racing": Controller("drl-racing", ("policy", "--model", "racing"), "policy",
+                             "racecav.services.policy.service", _policy_model("racing"),
+                             "DRL racing (stage 1, not in the paper's table)"),
     "mpc-apf": Controller("mpc-apf", ("baseline",), "baseline", "racecav.services.baseline.service",
                           None, "MPC-APF"),
     # Reference without evasion: straight ahead at the throttle that holds 1 m/s (the scenarios'

@@ -40,7 +40,7 @@ def outcome(trial: Trial) -> str:
         return "success"
     if trial.collided:
         return f"contact ({trial.contact_with}) at {trial.contact_time_s:.1f} s"
-    return f"no contact, progress {trial.progress_m:.1f} m (too short)"
+    return f"no contact, progress {trial.progress_m:.1f} m < min"
 
 
 def plot_trajectories(panels: list[tuple[Trial, str]], walls: list[np.ndarray], path: Path,
@@ -85,7 +85,7 @@ def plot_trajectories(panels: list[tuple[Trial, str]], walls: list[np.ndarray], 
         if ax is axes[0][0]:
             ax.set_ylabel("y (m)")
         gap = "" if trial.min_gap_m is None else f", min gap {trial.min_gap_m:.2f} m"
-        ax.set_title(f"{name}\nseed {trial.seed}: {outcome(trial)}{gap}", fontsize=9)
+        ax.set_title(f"{name}, seed {trial.seed}\n{outcome(trial)}{gap}", fontsize=8.5)
     if sc is not None:
         cb = fig.colorbar(sc, ax=axes[0].tolist(), shrink=0.8, pad=0.02)
         cb.set_label("time (s); ego green, obstacle red")

@@ -155,7 +155,7 @@ def test_policy_service_under_the_harness(tmp_path):
     assert st.info.get("answered", st.published) >= t.steps - 1
 
 
-@pytest.mark.parametrize("name", ["drl-reversed", "drl-default", "mpc-apf"])
+@pytest.mark.parametrize("name", ["drl-reversed", "drl-default", "drl-racing", "mpc-apf"])
 def test_shipped_controllers_run_under_the_harness(tmp_path, name):
     ctrl = CONTROLLERS[name]
     why = missing(ctrl)
