@@ -91,8 +91,11 @@ def _user_exists(name: str) -> bool:
 
 
 def install(lay: Layout, car: str = "car0", tls: bool = True, source: Path | None = None,
-            systemctl: bool = True, dry_run: bool = False) -> Plan:
-    """Install into ``lay``; returns the plan (what was, or would be, done)."""
+            systemctl: bool = True, dry_run: bool = False, hosts: list[str] | None = None) -> Plan:
+    """Install into ``lay``; returns the plan (what was, or would be, done).
+
+    :param hosts: names/IPs for the router's TLS certificate (default: localhost, this host's name).
+    """
     plan = Plan(dry_run)
     system = systemctl and lay.system and (dry_run or os.geteuid() == 0)
     # 1. user
@@ -120,7 +123,7 @@ def install(lay: Layout, car: str = "car0", tls: bool = True, source: Path | Non
     plan.write(lay.etc / "racecav.toml", render_config(lay, car, tls), 0o644, keep=True)
     plan.write(lay.etc / "racecav.env", (HERE / "config" / "racecav.env").read_text(), 0o644, keep=True)
     # 6. accounts, certificates, router config
-    make_credentials(lay.etc, car, tls, plan=plan, group=USER)
+    make_credentials(lay.etc, car, tls, hosts, plan=plan, group=USER)
     # 7. systemd and udev
     if system:
         plan.run(["systemctl", "daemon-reload"])
@@ -142,6 +145,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--source", type=Path, help="racecav source tree to pip install (default: this one)")
     p.add_argument("--car", help="car name (default: bus.car)")
     p.add_argument("--no-tls", action="store_true", help="no TLS endpoint, no certificates (loopback only)")
+    p.add_argument("--host", action="append", help="name or IP the router certificate is valid for (repeatable; "
+                   "default: localhost, 127.0.0.1 and this machine's name)")
     p.add_argument("--no-systemctl", action="store_true", help="do not create the user or call systemctl/udevadm")
     p.add_argument("--dry-run", action="store_true", help="print what would be done, do nothing")
 
@@ -150,7 +155,7 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     lay = Layout(args.root, args.prefix, args.venv)
     try:
         plan = install(lay, args.car or cfg.bus.car, not args.no_tls, args.source, not args.no_systemctl,
-                       args.dry_run)
+                       args.dry_run, args.host)
     except (RuntimeError, OSError) as e:
         print(f"racecav deploy install: {e}", file=sys.stderr)
         return 1

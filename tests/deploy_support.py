@@ -18,6 +18,7 @@ from pathlib import Path
 
 from racecav.common import procs
 from racecav.common.config import load_config
+from racecav.deploy.credentials import REMOTE_ACCOUNTS
 from racecav.deploy.install import Layout, install
 from racecav.deploy.units import read_env_file, service_command
 
@@ -58,15 +59,15 @@ class DeployedCar:
     :param extra_env: lines added to the installed racecav.env (KEY -> value).
     """
 
-    def __init__(self, root: Path, extra_env: dict[str, str] | None = None, car: str = "car0"):
+    def __init__(self, root: Path, extra_env: dict[str, str] | None = None, car: str = "car0",
+                 hosts: list[str] | None = None):
         self.root, self.car = root, car
         self.lay = Layout(root=root, venv=sys.prefix)
-        install(self.lay, car=car, tls=True, systemctl=False)
+        install(self.lay, car=car, tls=True, systemctl=False, hosts=hosts)
         self.port, self.tls_port = procs.free_port(), procs.free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        self.tls_endpoint = f"tls/localhost:{self.tls_port}"
         env = {"RACECAV_BUS__CONNECT": f'["{self.endpoint}"]',
-               "RACECAV_ROUTER__LISTEN": f'["{self.endpoint}", "tls/127.0.0.1:{self.tls_port}"]',
+               "RACECAV_ROUTER__LISTEN": f'["{self.endpoint}", "tls/0.0.0.0:{self.tls_port}"]',
                **(extra_env or {})}
         with open(self.lay.etc / "racecav.env", "a") as f:
             for k, v in env.items():
@@ -129,8 +130,13 @@ class DeployedCar:
     def account_env(self, account: str) -> dict[str, str]:
         return read_env_file(self.lay.etc / "credentials" / f"{account}.env")
 
-    def client_config(self, account: str | None, tls: bool = False, cert: bool = True, **bus):
-        """Config of a client: ``account``'s login (None: no login), over TLS or loopback tcp."""
+    def client_config(self, account: str | None, tls: bool | str = False, cert: bool | str = True, **bus):
+        """Config of a client: ``account``'s login (None: no login), over loopback tcp or TLS.
+
+        :param tls: True: tls/localhost; a string: that host (e.g. a non-loopback address).
+        :param cert: True: the account's own client certificate (monitor's if it has none); a
+            string: that account's certificate; False: none.
+        """
         env = {"RACECAV_CONFIG": str(self.lay.etc / "racecav.toml"), **read_env_file(self.lay.etc / "racecav.env")}
         env.pop("RACECAV_ROUTER__LISTEN", None)
         if account:
@@ -139,9 +145,11 @@ class DeployedCar:
         upd = dict(bus)
         if tls:
             tls_dir = self.lay.etc / "tls"
-            upd.update(connect=[self.tls_endpoint], tls_root_ca=tls_dir / "ca.pem")
+            host = tls if isinstance(tls, str) else "localhost"
+            upd.update(connect=[f"tls/{host}:{self.tls_port}"], tls_root_ca=tls_dir / "ca.pem")
             if cert:
-                upd.update(tls_cert=tls_dir / f"{account or 'monitor'}.pem", tls_key=tls_dir / f"{account or 'monitor'}.key")
+                who = cert if isinstance(cert, str) else account if account in REMOTE_ACCOUNTS else "monitor"
+                upd.update(tls_cert=tls_dir / f"{who}.pem", tls_key=tls_dir / f"{who}.key")
         return cfg.model_copy(update={"bus": cfg.bus.model_copy(update=upd)})
 
     def session(self, account: str | None, **kw):

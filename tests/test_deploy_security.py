@@ -4,22 +4,36 @@ installed config (login, mutual TLS, default-deny access control)."""
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import time
 
+import numpy as np
 import pytest
 import zenoh
 
 from racecav.common import keys, procs
 from racecav.common.client import get_status, live_services
-from racecav.common.codec import encode
-from racecav.common.messages import DriveCommand
+from racecav.common.codec import decode, encode
 from racecav.common.lidar import make_scan
+from racecav.common.messages import DriveCommand, Scan
 from tests.deploy_support import DeployedCar, wait_until
 
-import numpy as np
-
 CAR = "car0"
+
+
+def outward_ip() -> str | None:
+    """This machine's IPv4 address on a non-loopback interface (None if it has none)."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("192.0.2.1", 9))  # a UDP connect only picks the route: nothing is sent
+            ip = s.getsockname()[0]
+    except OSError:
+        return None
+    return None if ip.startswith("127.") else ip
+
+
+OUTWARD_IP = outward_ip()
 
 
 def command(source: str, seq: int, throttle: float) -> bytes:
@@ -30,7 +44,8 @@ def command(source: str, seq: int, throttle: float) -> bytes:
 @pytest.fixture(scope="module")
 def car(tmp_path_factory):
     root = tmp_path_factory.mktemp("car")
-    c = DeployedCar(root, extra_env={"RACECAV_ACTUATOR__PORT": str(root / "vesc"),
+    hosts = ["localhost", "127.0.0.1"] + ([OUTWARD_IP] if OUTWARD_IP else [])
+    c = DeployedCar(root, hosts=hosts, extra_env={"RACECAV_ACTUATOR__PORT": str(root / "vesc"),
                                      "RACECAV_ACTUATOR__TIMEOUT_S": "3.0"})  # see the stop check
     try:
         c.start("router")
@@ -93,11 +108,33 @@ def test_only_sensor_and_sim_accounts_publish_scans(car):
                     time.sleep(0.3)
         finally:
             sub.undeclare()
-    from racecav.common.codec import decode
-    from racecav.common.messages import Scan
-
     senders = {ACCOUNTS_ORDER[decode(b, Scan).seq // 100] for b in got}
     assert senders == {"sensor", "sim"}, senders
+
+
+def test_car_accounts_cannot_drive_from_the_network(car):
+    # The policy's password is useless off the car: its subject matches only through loopback.
+    # (Its login is still accepted, so this also shows denied puts vanish silently.)
+    if OUTWARD_IP is None:
+        pytest.skip("this machine has no non-loopback IPv4 address: cannot connect from 'the network'")
+
+    cmd_key = keys.topic(CAR, keys.CMD)
+    got: list[str] = []
+    with car.session("monitor") as mon:
+        sub = mon.declare_subscriber(cmd_key, lambda s: got.append(decode(s.payload.to_bytes(), DriveCommand).source))
+        try:
+            for tag, account, kw in (("policy@net", "policy", dict(tls=OUTWARD_IP, cert="teleop")),
+                                     ("policy@lo", "policy", {}),
+                                     ("teleop@net", "teleop", dict(tls=OUTWARD_IP))):
+                with car.session(account, **kw) as s:
+                    time.sleep(0.3)
+                    for k in range(5):
+                        s.put(cmd_key, command(tag, k, 0.5))
+                        time.sleep(0.02)
+                    time.sleep(0.3)
+        finally:
+            sub.undeclare()
+    assert set(got) == {"policy@lo", "teleop@net"}, got
 
 
 def test_non_controller_accounts_never_reach_the_actuator(car, tmp_path):

@@ -110,8 +110,8 @@ def test_udev_rules_name_the_devices_by_vendor_and_product():
             kv[m.group(1)] = (m.group(2), m.group(3))
         parsed[kv["SYMLINK"][1]] = kv
     # hardware-protocols.md: RPLIDAR S2 behind a CP210x 10c4:ea60, VESC USB CDC 0483:5740
-    assert parsed["rplidar"]["ATTRS{idVendor}"] == ("==", "10c4") and parsed["rplidar"]["ATTRS{idProduct}"] == ("==", "ea60")
-    assert parsed["vesc"]["ATTRS{idVendor}"] == ("==", "0483") and parsed["vesc"]["ATTRS{idProduct}"] == ("==", "5740")
+    for name, vid, pid in (("rplidar", "10c4", "ea60"), ("vesc", "0483", "5740")):
+        assert parsed[name]["ATTRS{idVendor}"] == ("==", vid) and parsed[name]["ATTRS{idProduct}"] == ("==", pid)
     for kv in parsed.values():
         assert kv["SYMLINK"][0] == "+=" and kv["GROUP"] == ("=", "dialout") and kv["MODE"] == ("=", "0660")
 
