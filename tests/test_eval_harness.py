@@ -170,3 +170,41 @@ def test_shipped_controllers_run_under_the_harness(tmp_path, name):
     assert t.commands >= t.steps - 1 and t.compute_ms.n == t.commands and t.latency_ms.n > 0
     # the same trial seed as everywhere: the obstacle starts where scenario sampling puts it
     assert json.loads((tmp_path / "r.json").read_text())["base_seed"] == 0
+
+
+def test_eval_realtime_mode(tmp_path):
+    r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "scripted", "--trials", "1", "--mode", "realtime",
+              "--json", str(tmp_path / "r.json"))
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = validate_run(tmp_path / "r.json")
+    t = res.trials[0]
+    assert res.mode == "realtime" and t.collided and t.wall_s >= 0.8 * t.end_time_s  # ran on the wall clock
+
+
+def test_table_writes_the_document(tmp_path):
+    doc = tmp_path / "results.md"
+    r = _eval(tmp_path, "--table", "--controllers", "scripted", "--trials", "1", "--doc", str(doc), timeout=180)
+    assert r.returncode == 0, r.stdout + r.stderr
+    text = doc.read_text()
+    assert "racecav eval --table --trials 1 --controllers scripted" in text
+    assert "| no evasion (straight 1 m/s, scripted) | **0** [0, 79] | - |" in text  # 0/1 collides, Wilson CI
+    for sc in ("right-to-left", "head-to-head", "left-to-right"):
+        assert validate_run(tmp_path / "table" / f"scripted-{sc}.json").complete
+    for png in ("results-table1.png", "results-fig4.png"):
+        assert (tmp_path / "img" / png).stat().st_size > 10_000
+    # a controller that cannot run is named, nothing is started
+    r = _eval(tmp_path, "--table", "--controllers", "scripted,nonsense", "--trials", "1", "--doc", str(doc))
+    assert r.returncode == 2 and "nonsense" in r.stderr
+
+
+def test_demo_needs_the_shipped_reversed_policy(tmp_path):
+    if missing(CONTROLLERS["drl-reversed"]):
+        r = subprocess.run(procs.racecav_cmd("demo", "--out-dir", str(tmp_path)), capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == 1 and "reversed.npz" in r.stderr and "Nothing was started" in r.stderr
+        return
+    r = subprocess.run(procs.racecav_cmd("demo", "--trials", "1", "--out-dir", str(tmp_path)), capture_output=True,
+                       text=True, timeout=180)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "trial 0 (seed 0)" in r.stdout and "scan->command latency median" in r.stdout
+    assert (tmp_path / "head-to-head-drl-reversed.png").exists()
