@@ -32,6 +32,7 @@ import numpy as np
 from racecav.common.config import BaselineConfig
 from racecav.common.vehicle import CarParams
 
+SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 OBS_FIELDS = 8
 """Per obstacle parameter: x, y, vx, vy, cos(heading), sin(heading), half_length, weight."""
 
@@ -253,7 +254,8 @@ class MpcApf:
             st = self.solver.stats()
             iters += int(st.get("iter_count", 0))
             w = np.asarray(sol["x"]).ravel()
-            ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(w)))
+            # sqpmethod may leave "success" unset when it converges at iteration 0: trust the status
+            ok = (bool(st.get("success", False)) or st.get("return_status") in SUCCESS) and bool(np.all(np.isfinite(w)))
             f = float(sol["f"]) if np.isfinite(float(sol["f"])) else math.inf
             cand = (not ok, f, k, w if np.all(np.isfinite(w)) else w0, sol, pk, str(st.get("return_status", "")), ok)
             if best is None or cand[:2] < best[:2]:

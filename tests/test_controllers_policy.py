@@ -1,0 +1,167 @@
+"""The DRL policy controller: numpy inference = SB3 reference; the service over Zenoh answers a scan
+with exactly the offline action; bad, stale and missing scans get no command and are counted."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from racecav.common import keys, procs
+from racecav.common.client import get_status
+from racecav.common.codec import decode, encode
+from racecav.common.lidar import LidarSpec, make_scan, sanitize
+from racecav.common.messages import DriveCommand
+from racecav.common.vehicle import load_car, steer_from_action
+from racecav.services.policy.model import NumpyPolicy, load_policy
+
+
+def random_policy_file(path, seed: int = 0, normalize: bool = True):
+    """Weights of the shipped format (random, right shapes), with VecNormalize statistics."""
+    rng = np.random.default_rng(seed)
+    arrays = {"w0": rng.normal(0, 0.15, (170, 64)), "b0": rng.normal(0, 0.1, 64),
+              "w1": rng.normal(0, 0.2, (64, 64)), "b1": rng.normal(0, 0.1, 64),
+              "w2": rng.normal(0, 0.3, (64, 2)), "b2": rng.normal(0, 0.1, 2), "log_std": np.zeros(2)}
+    arrays = {k: v.astype(np.float32) for k, v in arrays.items()}
+    if normalize:
+        arrays.update(obs_mean=rng.uniform(1, 6, 170), obs_var=rng.uniform(0.5, 9, 170),
+                      obs_clip=np.float64(10.0), obs_eps=np.float64(1e-8))
+    np.savez(path, **arrays)
+    return path
+
+
+def test_numpy_policy_equals_sb3_reference(tmp_path):
+    """The numpy path (no torch) equals SB3's deterministic predict within 1e-5."""
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.running_mean_std import RunningMeanStd
+
+    from racecav.services.policy.model import export_policy
+
+    torch.manual_seed(0)
+
+    class Dummy(gym.Env):
+        observation_space = gym.spaces.Box(0.05, 12.0, (170,), np.float32)
+        action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+        def reset(self, seed=None, options=None):
+            return np.full(170, 5.0, np.float32), {}
+
+        def step(self, action):
+            return np.full(170, 5.0, np.float32), 0.0, True, False, {}
+
+    model = PPO("MlpPolicy", Dummy(), policy_kwargs=dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh),
+                device="cpu", seed=0)
+    with torch.no_grad():  # a non-trivial action head (fresh PPO heads are near zero)
+        model.policy.action_net.weight.mul_(100.0)
+    rms = RunningMeanStd(shape=(170,))
+    rng = np.random.default_rng(1)
+    rms.update(rng.uniform(0.05, 12, (500, 170)))
+    path = export_policy(model, tmp_path / "p.npz", {"test": True}, obs_rms=rms, clip_obs=10.0)
+    pol = load_policy(path)
+    obs = sanitize(rng.uniform(0.0, 14.0, (64, 170)).astype(np.float32))
+    norm = np.clip((obs - rms.mean) / np.sqrt(rms.var + 1e-8), -10, 10).astype(np.float32)
+    ref, _ = model.predict(norm, deterministic=True)
+    got = pol(obs)
+    assert np.abs(got).max() > 0.1  # the comparison is not between two near-zero outputs
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+class Commands:
+    """Collects DriveCommands on the cmd key."""
+
+    def __init__(self, session, car: str = "car0"):
+        self.items: list[DriveCommand] = []
+        self._lock = threading.Lock()
+        self.sub = session.declare_subscriber(keys.topic(car, keys.CMD), self._on)
+
+    def _on(self, sample):
+        with self._lock:
+            self.items.append(decode(sample.payload.to_bytes(), DriveCommand))
+
+    def wait(self, n: int, timeout: float = 10.0) -> list[DriveCommand]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if len(self.items) >= n:
+                    return list(self.items)
+            time.sleep(0.01)
+        raise TimeoutError(f"{n} commands expected, got {len(self.items)}")
+
+    def snapshot(self) -> list[DriveCommand]:
+        with self._lock:
+            return list(self.items)
+
+
+def _test_scan(seq: int, rng, source: str = "sim", stamp_ns: int | None = None):
+    """A scan exercising the sanitisation: no returns (+inf), beyond range, below range_min."""
+    spec = LidarSpec()
+    r = rng.uniform(0.3, 8.0, spec.n_rays).astype(np.float32)
+    r[:10] = np.inf
+    r[10:15] = 15.0     # beyond range_max: the sensor would not say so, but sanitize must clip
+    r[15:18] = 0.01     # below range_min
+    return make_scan(r, stamp_ns if stamp_ns is not None else 1_000_000 * (seq + 1), seq, source, spec)
+
+
+def test_policy_service_matches_offline_inference(spawn, session, tmp_path):
+    path = random_policy_file(tmp_path / "pol.npz")
+    ctl = spawn("policy", "--model", str(path))
+    procs.wait_alive(session, "car0", "policy", proc=ctl)
+    cmds = Commands(session)
+    pub = session.declare_publisher(keys.topic("car0", keys.SCAN))
+    pol, car = load_policy(path), load_car()
+    rng = np.random.default_rng(3)
+    scans = []
+    for seq in range(5):
+        scans.append(_test_scan(seq, rng))
+        pub.put(encode(scans[-1]))
+        cmds.wait(seq + 1)
+    got = cmds.wait(5)
+    for scan, cmd in zip(scans, got):
+        a = pol(sanitize(scan.ranges))
+        assert cmd.source == "policy"
+        assert cmd.scan_seq == scan.seq and cmd.scan_stamp_ns == scan.stamp_ns
+        assert cmd.a_throttle == pytest.approx(float(a[0]), abs=1e-6)
+        assert cmd.a_steer == pytest.approx(float(a[1]), abs=1e-6)
+        assert cmd.throttle == pytest.approx(float(np.clip(a[0], 0, 1)), abs=1e-6)
+        assert cmd.steering_angle == pytest.approx(float(steer_from_action(a[1], car)), abs=1e-6)
+        assert 0 < cmd.compute_ns < 50e6
+    # the actions differ between scans (the test would notice a constant output)
+    assert len({round(c.a_steer, 4) for c in got}) > 1
+    st = get_status(session, "car0", "policy")
+    assert st.info["answered"] == 5 and st.info["model"] == str(path) and st.info["normalize"]
+    pub.undeclare()
+    cmds.sub.undeclare()
+
+
+def test_bad_stale_and_missing_scans_get_no_command(spawn, session, tmp_path):
+    path = random_policy_file(tmp_path / "pol.npz", seed=1, normalize=False)
+    ctl = spawn("policy", "--model", str(path), "--max-scan-age", "0.2")
+    procs.wait_alive(session, "car0", "policy", proc=ctl)
+    cmds = Commands(session)
+    pub = session.declare_publisher(keys.topic("car0", keys.SCAN))
+    rng = np.random.default_rng(4)
+    time.sleep(0.5)  # missing: no scan, no command
+    assert cmds.snapshot() == []
+    pub.put(b"\x93garbage")                                    # undecodable
+    wide = make_scan(np.full(360, 2.0, np.float32), 5, 1, "sim",
+                     LidarSpec(n_rays=360, fov=2 * np.pi - 2 * np.pi / 360, angle_min=-np.pi))
+    pub.put(encode(wide))                                      # decodes, but not the policy's lidar
+    time.sleep(0.3)  # newest-only input: let the service take it before the next one
+    stale = _test_scan(2, rng, source="real", stamp_ns=time.monotonic_ns() - 2_000_000_000)
+    pub.put(encode(stale))                                     # a real scan stamped 2 s ago
+    time.sleep(0.8)
+    assert cmds.snapshot() == []
+    st = get_status(session, "car0", "policy")
+    assert st.invalid >= 1 and st.info["malformed"] == 1 and st.info["stale"] == 1
+    assert st.published == 0 and st.info["answered"] == 0
+    # ...and the service is still running: a good, fresh real scan is answered
+    good = _test_scan(3, rng, source="real", stamp_ns=time.monotonic_ns())
+    pub.put(encode(good))
+    (cmd,) = cmds.wait(1)
+    assert cmd.scan_seq == 3
+    pub.undeclare()
+    cmds.sub.undeclare()
