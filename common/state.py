@@ -33,8 +33,16 @@ def collect(session, car: str, only: str | None, timeout: float) -> list[dict]:
 def run(args: argparse.Namespace, cfg: Config) -> int:
     from racecav.common.client import open_session
 
+    import zenoh
+
     car = args.car or cfg.bus.car
-    with open_session(cfg) as session:
+    try:
+        session = open_session(cfg)
+    except zenoh.ZError as e:  # no router there, or (deployed car) a missing/wrong login or certificate
+        login = f"as user {cfg.bus.user!r}" if cfg.bus.user else "without a login (bus.user)"
+        print(f"racecav state: cannot join the bus at {', '.join(cfg.bus.connect)} {login}: {e}", file=sys.stderr)
+        return 1
+    with session:
         rows = collect(session, car, args.service, args.timeout)
     if args.json:
         json.dump({"car": car, "services": rows}, sys.stdout, indent=2)

@@ -87,7 +87,7 @@ def test_state_command_needs_the_monitor_login(car):
     assert ok.returncode == 0, ok.stderr
     assert [r["service"] for r in json.loads(ok.stdout)["services"]] == ["router"]
     anon = subprocess.run(cmd, env=base, capture_output=True, text=True, timeout=60)
-    assert anon.returncode != 0 and "Unable to connect" in anon.stderr
+    assert anon.returncode == 1 and "cannot join the bus" in anon.stderr and "without a login" in anon.stderr
 
 
 ACCOUNTS_ORDER = ("policy", "baseline", "actuator", "teleop", "sensor", "sim")
