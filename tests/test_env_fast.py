@@ -283,3 +283,17 @@ def test_non_finite_actions_are_counted_and_neutralised():
     assert fw.bad_actions == 2
     assert np.isfinite(fw.agent_state).all() and np.isfinite(obs).all()
     assert thr[0] == 0.0 and a_d[1] == 1.0
+
+
+def test_respawned_obstacles_keep_away_from_the_agent():
+    fw = FastWorld(n_envs=1, n_obstacles=15, seed=0)
+    fw.reset()
+    for _ in range(30):
+        fw.wall_hit[0, 1:] = True  # every obstacle "touched a wall": all respawn
+        fw._respawn_obstacles(np.zeros(1, dtype=bool))
+        d = np.hypot(fw.x[0, 1:] - fw.x[0, 0], fw.y[0, 1:] - fw.y[0, 0])
+        act = fw.active[0, 1:]
+        assert np.all(d[act] >= 6.0)
+        px, py = fw.x[0, 1:][act], fw.y[0, 1:][act]
+        dd = np.hypot(px[:, None] - px[None], py[:, None] - py[None]) + np.eye(act.sum()) * 99
+        assert dd.min() >= 2.5

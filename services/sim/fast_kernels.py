@@ -568,9 +568,11 @@ def place_world(n, x, y, yaw, v, w, delta, idx, offset, vfac, active, cl, ds, u,
 
 
 @njit(cache=True)
-def respawn_car(n, c, x, y, yaw, v, w, delta, idx, offset, active, cl, u, min_dist, lat_max):
+def respawn_car(n, c, x, y, yaw, v, w, delta, idx, offset, active, cl, u, min_dist,
+                min_dist_agent, lat_max):
     """Move car c of world n to a random centerline point at least ``min_dist`` from every other
-    car (tries the candidates in ``u`` in turn: (T, 2) uniforms). Returns True if placed."""
+    car and ``min_dist_agent`` from the agent (car 0; a car must not pop up in front of it);
+    tries the candidates in ``u`` in turn ((T, 2) uniforms). Returns True if placed."""
     K = cl.shape[0]
     C = x.shape[1]
     for t in range(u.shape[0]):
@@ -584,7 +586,8 @@ def respawn_car(n, c, x, y, yaw, v, w, delta, idx, offset, active, cl, u, min_di
                 continue
             dx = x[n, j] - px
             dy = y[n, j] - py
-            if dx * dx + dy * dy < min_dist * min_dist:
+            dmin = min_dist_agent if j == 0 else min_dist
+            if dx * dx + dy * dy < dmin * dmin:
                 ok = False
                 break
         if ok:

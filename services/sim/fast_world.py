@@ -29,7 +29,8 @@ from racecav.services.sim import fast_kernels as K
 
 CENTERLINE_DS = 0.05  # m, spacing of the dense centerline table used by resets and traffic
 RESPAWN_TRIES = 24
-RESPAWN_MIN_DIST = 2.5  # m from every other car when an obstacle car is respawned
+RESPAWN_MIN_DIST = 2.5  # m from every other car when an obstacle car is respawned ...
+RESPAWN_MIN_DIST_AGENT = 6.0  # ... and from the agent (over 2 s at its top speed)
 RESET_YAW_NOISE = 0.1  # rad, +- around the centerline direction at a reset
 OBSTACLE_SPEED_FRACTION = (0.55, 1.0)  # each obstacle car's cruise speed / top speed, uniform
 GRAVITY = 9.81
@@ -330,7 +331,7 @@ class FastWorld:
             n, c = int(ns[i]), int(cs[i]) + 1
             if not K.respawn_car(n, c, self.x, self.y, self.yaw, self.v, self.w, self.delta,
                                  self.cl_idx, self.lane_offset, self.active, self.cl, u[i],
-                                 RESPAWN_MIN_DIST, self.lat_max):
+                                 RESPAWN_MIN_DIST, RESPAWN_MIN_DIST_AGENT, self.lat_max):
                 self.active[n, c] = False  # no free spot: the car leaves the world
                 self.x[n, c], self.y[n, c] = 1e6 + 10.0 * c, 1e6
             self.delta_cmd[n, c] = self.delta[n, c]
