@@ -23,6 +23,28 @@ from racecav.deploy.install import Layout, install
 from racecav.deploy.units import read_env_file, service_command
 
 
+def ensure_tool(exe: str, package: str) -> str:
+    """Path of ``exe``; installs the Debian/Ubuntu ``package`` (as root, with apt-get) if missing.
+
+    Skips the calling test, loudly, only when that is impossible.
+    """
+    import shutil
+
+    import pytest
+
+    path = shutil.which(exe)
+    if path is None and shutil.which("apt-get") and os.geteuid() == 0:
+        env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+        subprocess.run(["apt-get", "update", "-qq"], env=env, check=False, capture_output=True)
+        subprocess.run(["apt-get", "install", "-y", "-qq", "--no-install-recommends", package], env=env,
+                       check=False, capture_output=True)
+        path = shutil.which(exe)
+    if path is None:
+        pytest.skip(f"SKIPPED LOUDLY: {exe} is missing and could not be installed (package {package}; "
+                    "needs root and apt-get): this deployment check did NOT run")
+    return path
+
+
 def wait_until(pred, timeout=10.0, step=0.05) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -62,6 +84,7 @@ class DeployedCar:
     def __init__(self, root: Path, extra_env: dict[str, str] | None = None, car: str = "car0",
                  hosts: list[str] | None = None):
         self.root, self.car = root, car
+        ensure_tool("openssl", "openssl")  # the credentials' certificates
         self.lay = Layout(root=root, venv=sys.prefix)
         install(self.lay, car=car, tls=True, systemctl=False, hosts=hosts)
         self.port, self.tls_port = procs.free_port(), procs.free_port()

@@ -149,12 +149,12 @@ def test_non_controller_accounts_never_reach_the_actuator(car, tmp_path):
         with car.session("monitor") as mon, car.session("policy") as pol:
             procs.wait_alive(mon, CAR, "actuator")
             info = lambda: get_status(mon, CAR, "actuator").info  # noqa: E731
-            time.sleep(0.3)
 
             def drive(session, source, throttle, n=15):
                 # A declared express publisher, as the controllers use (it only sends once it
                 # has heard of the actuator's subscription: the ACL must let that through).
                 pub = session.declare_publisher(cmd_key, express=True)
+                time.sleep(0.3)
                 try:
                     for k in range(n):
                         pub.put(command(source, k, throttle))
@@ -168,7 +168,6 @@ def test_non_controller_accounts_never_reach_the_actuator(car, tmp_path):
             # Everyone else, even claiming to be the policy (the source field is self-declared):
             for account in ("sensor", "sim", "actuator", "monitor"):
                 with car.session(account) as s:
-                    time.sleep(0.3)
                     drive(s, "policy", 0.9)
             time.sleep(0.3)
             st = info()
@@ -176,7 +175,6 @@ def test_non_controller_accounts_never_reach_the_actuator(car, tmp_path):
             # The baseline account may publish commands, but the actuator only obeys its
             # configured controller (actuator.controller = policy): refused, counted.
             with car.session("baseline") as s:
-                time.sleep(0.3)
                 drive(s, "baseline", 0.9, n=5)
             assert wait_until(lambda: info()["refused"] >= 3, timeout=3)
             assert info()["accepted"] == accepted

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
 import stat
 import subprocess
 import sys
@@ -15,29 +13,21 @@ import pytest
 
 from racecav.deploy import credentials, install
 from racecav.deploy.units import parse_unit, service_command
+from tests.deploy_support import ensure_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 SYSTEMD = ROOT / "deploy" / "systemd"
 
 
 def systemd_analyze() -> str:
-    """Path of systemd-analyze; installs the systemd package (Debian/Ubuntu, as root) if missing."""
-    exe = shutil.which("systemd-analyze")
-    if exe is None and shutil.which("apt-get") and os.geteuid() == 0:
-        env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
-        subprocess.run(["apt-get", "update", "-qq"], env=env, check=False, capture_output=True)
-        subprocess.run(["apt-get", "install", "-y", "-qq", "--no-install-recommends", "systemd"], env=env,
-                       check=False, capture_output=True)
-        exe = shutil.which("systemd-analyze")
-    if exe is None:
-        pytest.skip("SKIPPED LOUDLY: systemd-analyze is missing and could not be installed "
-                    "(needs root and apt-get): the units were NOT verified")
-    return exe
+    """systemd-analyze, installed with the systemd package if missing (see ensure_tool)."""
+    return ensure_tool("systemd-analyze", "systemd")
 
 
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
     """An install into a temporary root using this venv (no venv creation, no systemctl)."""
+    ensure_tool("openssl", "openssl")
     root = tmp_path_factory.mktemp("root")
     plan = install.install(install.Layout(root=root, venv=sys.prefix), car="car0", tls=True, systemctl=False)
     return root, plan
