@@ -5,7 +5,7 @@ each trial) and one controller service as separate processes, each a client of t
 runs trials through the sim's ``scenario`` and ``reset`` queryables with one seed per trial. A
 :class:`Recorder` (a client session of the harness) listens to what is on the bus: the sim's
 VehicleState and ObstacleStates (ground truth for the trajectory and the distances), the scans
-and the commands (scan -> command latency, timed at the harness's arrival of each; the
+and the commands (scan -> command latency on the router's clock, see :func:`_arrival`; the
 controller's own ``compute_ns``). Outcome, contact and progress come from the sim's status
 queryable at the end of the trial: the sim decides success exactly as in-process evaluation does.
 
@@ -100,8 +100,30 @@ class HarnessError(RuntimeError):
 @dataclass
 class _Cmd:
     scan_seq: int
-    arrival_ns: int
+    arrival: tuple[int | None, int]
     compute_ns: int
+
+
+def _arrival(sample) -> tuple[int | None, int]:
+    """(router timestamp in ns or None, local monotonic ns) of a sample.
+
+    The router stamps every sample it routes (Zenoh timestamping, on by default in routers) with
+    its hybrid logical clock: the difference of two such stamps is time at the router, free of
+    this process's own scheduling delays.
+    """
+    local = time.monotonic_ns()
+    ts = sample.timestamp
+    return (None if ts is None else int(ts.get_time_as_ntp64().as_nanos())), local
+
+
+def latency_ms(scan: tuple[int | None, int], cmd: tuple[int | None, int]) -> tuple[float, str] | None:
+    """Scan -> command latency (ms) and the clock used ("router" or "harness"), or None when the
+    command was seen before its scan (only possible on the harness's clock)."""
+    if scan[0] is not None and cmd[0] is not None:
+        return (cmd[0] - scan[0]) * 1e-6, "router"
+    if cmd[1] >= scan[1]:
+        return (cmd[1] - scan[1]) * 1e-6, "harness"
+    return None
 
 
 @dataclass
@@ -110,8 +132,8 @@ class Recorder:
 
     session: object
     car: str = "car0"
-    scans: dict[int, int] = field(default_factory=dict)
-    """scan seq -> arrival (monotonic ns) of its latest publication."""
+    scans: dict[int, tuple[int | None, int]] = field(default_factory=dict)
+    """scan seq -> arrival (router stamp, local monotonic ns) of its latest publication."""
     cmds: list[_Cmd] = field(default_factory=list)
     states: dict[int, VehicleState] = field(default_factory=dict)
     obstacles: dict[int, ObstacleStates] = field(default_factory=dict)
@@ -133,14 +155,14 @@ class Recorder:
             return None
 
     def _on_scan(self, sample) -> None:
-        now = time.monotonic_ns()
+        now = _arrival(sample)
         msg = self._decode(sample, Scan)
         if msg is not None:
             with self._cond:
                 self.scans[msg.seq] = now
 
     def _on_cmd(self, sample) -> None:
-        now = time.monotonic_ns()
+        now = _arrival(sample)
         msg = self._decode(sample, DriveCommand)
         if msg is not None:
             with self._cond:
@@ -361,8 +383,9 @@ class Harness:
             cb = metrics.box_corners(tr[:, 0], tr[:, 1], tr[:, 2], ob.length, ob.width)
             gaps.append(metrics.footprint_gap(ca, cb).min())
             centres.append(np.hypot(ego[:, 0] - tr[:, 0], ego[:, 1] - tr[:, 1]).min())
-        latency = [(c.arrival_ns - scans[c.scan_seq]) * 1e-6 for c in cmds
-                   if c.scan_seq in scans and c.arrival_ns >= scans[c.scan_seq]]
+        measured = [m for c in cmds if c.scan_seq in scans and (m := latency_ms(scans[c.scan_seq], c.arrival))]
+        latency = [m[0] for m in measured]
+        clocks = sorted({m[1] for m in measured})
         compute = [c.compute_ns * 1e-6 for c in cmds]
         traj = None
         if keep:
@@ -377,7 +400,7 @@ class Harness:
                      min_center_distance_m=float(min(centres)) if centres else None,
                      steps=len(states), commands=len(cmds), latency_ms=stats(latency),
                      compute_ms=stats(compute), wall_s=wall_s,
-                     latency_steps_ms=[round(v, 4) for v in latency],
+                     latency_clock="+".join(clocks) or "none", latency_steps_ms=[round(v, 4) for v in latency],
                      compute_steps_ms=[round(v, 4) for v in compute], trajectory=traj)
 
 

@@ -78,8 +78,12 @@ class Trial(_Strict):
     commands: int = Field(ge=0)
     """Commands seen answering this trial's scans."""
     latency_ms: Stats
-    """Scan -> command: arrival of a scan to arrival of the command answering it (scan_seq),
-    both timed by the harness on the bus (so it includes the controller's Zenoh hops)."""
+    """Scan -> command: from the scan's arrival at the router to the arrival of the command
+    answering it (its scan_seq), both stamped by the router's clock (Zenoh timestamping): the
+    controller's whole leg, two Zenoh hops + decode + compute + publish."""
+    latency_clock: str = "router"
+    """Clock of latency_ms: "router" (router timestamps), "harness" (arrival at the harness's
+    client, when the router does not stamp samples), or both joined by "+"; "none" if unmeasured."""
     compute_ms: Stats
     """The controller's own compute time (DriveCommand.compute_ns)."""
     wall_s: float

@@ -175,8 +175,9 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     lines += [f"![success rates]({bars.relative_to(doc.parent)})", ""]
     # details: collisions, distances, latency
     lines += ["## Per cell: collisions, distance, progress, latency", "",
-              "Latency: scan -> command, from a scan's arrival to the arrival of the command answering it "
-              "(its `scan_seq`), both timed by the harness's own bus client, pooled over every step; compute: "
+              "Latency: scan -> command, from a scan's arrival at the router to the arrival there of the "
+              "command answering it (its `scan_seq`), both stamped by the router's clock (Zenoh timestamping): "
+              "the controller's whole leg (two hops, decode, compute, publish), pooled over every step; compute: "
               "the controller's own `compute_ns`. In lockstep mode the sim applies each command `compute_ns` "
               "into the control period (a slow controller pays for its slowness in sim time).", "",
               "| controller | scenario | trials | success | collisions | median min gap (m) | mean progress (m) "

@@ -51,7 +51,8 @@ def test_eval_cli_scripted_head_to_head(tmp_path):
         assert t.collided and not t.success and t.contact_with == "car1"
         assert 3.0 < t.contact_time_s < 5.0 and t.min_gap_m == 0.0
         assert t.steps == len(t.trajectory.t) and len(t.trajectory.obstacles) == 1
-        assert t.commands >= t.steps - 1 and t.latency_ms.n > 0 and t.latency_ms.median > 0
+        assert t.commands >= t.steps - 1 and t.latency_ms.n == t.commands and t.latency_ms.median > 0
+        assert t.latency_clock == "router"  # the router stamps every sample it routes
         ego, obs = np.array(t.trajectory.ego), np.array(t.trajectory.obstacles[0])
         assert ego[-1, 0] > ego[0, 0] + 3 and obs[-1, 0] < obs[0, 0] - 3  # they drove at each other
     assert res.summary.ci95 is not None and res.summary.collisions == 2
