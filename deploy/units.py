@@ -57,11 +57,14 @@ def read_env_file(path: str | Path) -> dict[str, str]:
     return env
 
 
-def service_command(unit: str | Path, base_env: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
-    """The argv of ExecStart= and the environment systemd would start it with.
+def service_command(unit: str | Path, base_env: dict[str, str] | None = None,
+                    key: str = "ExecStart") -> tuple[list[str], dict[str, str]]:
+    """The argv of ExecStart= (or ``key``, e.g. ExecStopPost) and the environment systemd would
+    start it with.
 
     Environment= first, then each EnvironmentFile= in order (they override Environment=, as
-    documented in systemd.exec(5)); a leading "-" marks an optional file.
+    documented in systemd.exec(5)); a leading "-" marks an optional file (and, on a command,
+    a failure that is ignored).
 
     :param base_env: the environment to start from (systemd's own: PATH, NOTIFY_SOCKET, ...).
     """
@@ -77,7 +80,7 @@ def service_command(unit: str | Path, base_env: dict[str, str] | None = None) ->
         if optional and not path.exists():
             continue
         env.update(read_env_file(path))
-    starts = svc.get("ExecStart", [])
-    if len(starts) != 1:
-        raise ValueError(f"{unit}: expected one ExecStart=, found {len(starts)}")
-    return shlex.split(starts[0]), env
+    lines = svc.get(key, [])
+    if len(lines) != 1:
+        raise ValueError(f"{unit}: expected one {key}=, found {len(lines)}")
+    return shlex.split(lines[0].lstrip("-")), env

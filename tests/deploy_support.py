@@ -103,11 +103,12 @@ class DeployedCar:
     def unit(self, name: str) -> Path:
         return self.lay.unit_dir / f"racecav-{name}.service"
 
-    def command(self, name: str) -> tuple[list[str], dict[str, str]]:
-        """ExecStart argv and environment of racecav-<name>.service, state dirs under the root."""
+    def command(self, name: str, key: str = "ExecStart") -> tuple[list[str], dict[str, str]]:
+        """argv (of ExecStart or ``key``) and environment of racecav-<name>.service, with the
+        unit's state/cache directories under the root."""
         notify = self.notify[name] = Notify(name)
         argv, env = service_command(self.unit(name), {"PATH": os.environ.get("PATH", "/usr/bin:/bin"),
-                                                      "NOTIFY_SOCKET": notify.addr})
+                                                      "NOTIFY_SOCKET": notify.addr}, key)
         svc_watchdog = self._unit_value(name, "WatchdogSec")
         env["WATCHDOG_USEC"] = str(int(float(svc_watchdog) * 1e6))
         for k, v in env.items():  # StateDirectory=/CacheDirectory= live under the root here
@@ -129,6 +130,14 @@ class DeployedCar:
         p = subprocess.Popen(argv, env=env, cwd=wd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         self.procs[name] = p
         return p
+
+    def run_command(self, name: str, key: str, timeout: float = 60.0) -> int:
+        """Run the unit's ``key`` command (e.g. ExecStopPost) to completion; its exit code."""
+        argv, env = self.command(name, key)
+        env.pop("NOTIFY_SOCKET")
+        env.pop("WATCHDOG_USEC")
+        with open(self.logs / f"{name}-{key}.log", "ab") as log:
+            return subprocess.run(argv, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=timeout).returncode
 
     def wait_ready(self, name: str, timeout: float = 60.0) -> None:
         """Until the unit's process sent READY=1 (what systemd waits for with Type=notify)."""

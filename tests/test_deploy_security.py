@@ -4,6 +4,8 @@ installed config (login, mutual TLS, default-deny access control)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import socket
 import subprocess
 import time
@@ -137,64 +139,100 @@ def test_car_accounts_cannot_drive_from_the_network(car):
     assert set(got) == {"policy@lo", "teleop@net"}, got
 
 
-def test_non_controller_accounts_never_reach_the_actuator(car, tmp_path):
-    vlog = tmp_path / "vesc.jsonl"
+@pytest.fixture(scope="module")
+def vesc(car, tmp_path_factory):
+    """The VESC emulator on the path the installed config names; yields its frame log."""
+    d = tmp_path_factory.mktemp("vesc")
+    vlog = d / "vesc.jsonl"
     emu = procs.start(["emulate", "vesc", "--link", str(car.root / "vesc"), "--log", str(vlog), "--quiet"],
-                      procs.bus_env(car.endpoint), tmp_path / "emu.log")
+                      procs.bus_env(car.endpoint), d / "emu.log")
     try:
         assert wait_until((car.root / "vesc").exists)
-        car.start("actuator")
-        car.wait_ready("actuator", 30)
-        cmd_key = keys.topic(CAR, keys.CMD)
-        with car.session("monitor") as mon, car.session("policy") as pol:
-            procs.wait_alive(mon, CAR, "actuator")
-            info = lambda: get_status(mon, CAR, "actuator").info  # noqa: E731
-
-            def drive(session, source, throttle, n=15):
-                # A declared express publisher, as the controllers use (it only sends once it
-                # has heard of the actuator's subscription: the ACL must let that through).
-                pub = session.declare_publisher(cmd_key, express=True)
-                time.sleep(0.3)
-                try:
-                    for k in range(n):
-                        pub.put(command(source, k, throttle))
-                        time.sleep(0.02)
-                finally:
-                    pub.undeclare()
-
-            drive(pol, "policy", 0.5)  # the controller's commands reach the motor
-            assert wait_until(lambda: info()["accepted"] >= 10, timeout=5)
-            accepted = info()["accepted"]
-            # Everyone else, even claiming to be the policy (the source field is self-declared):
-            for account in ("sensor", "sim", "actuator", "monitor"):
-                with car.session(account) as s:
-                    drive(s, "policy", 0.9)
-            time.sleep(0.3)
-            st = info()
-            assert st["accepted"] == accepted and st["refused"] == 0 and st["malformed"] == 0
-            # The baseline account may publish commands, but the actuator only obeys its
-            # configured controller (actuator.controller = policy): refused, counted.
-            with car.session("baseline") as s:
-                drive(s, "baseline", 0.9, n=5)
-            assert wait_until(lambda: info()["refused"] >= 3, timeout=3)
-            assert info()["accepted"] == accepted
-            # Stopping the unit (SIGTERM, as systemctl stop) while the policy drives leaves the
-            # motor braked and the steering centred at once (the 3 s watchdog cannot be the cause).
-            drive(pol, "policy", 0.5, n=10)
-            assert car.stop("actuator") == 0
-        recs = [json.loads(ln) for ln in vlog.read_text().splitlines()]
-        drive_rpm = [r["value"] for r in recs if r["name"] == "SET_RPM" and r["value"] > 0]
-        from racecav.common.config import load_config
-        from racecav.common.vehicle import load_car
-        from racecav.services.actuator.control import Mapping
-
-        mapping = Mapping(load_config().actuator, load_car("slash"))
-        # The 0.9 commands never reached the VESC: every drive frame is the policy's 0.5.
-        assert drive_rpm and all(abs(v - mapping.erpm(0.5)) <= 1 for v in drive_rpm)
-        last_drive = max(i for i, r in enumerate(recs) if r["name"] == "SET_RPM" and r["value"] > 0)
-        tail = recs[last_drive + 1:]
-        assert [r["name"] for r in tail[-2:]] == ["SET_CURRENT_BRAKE", "SET_SERVO_POS"]
-        assert tail[-1]["value"] == pytest.approx(mapping.servo(0.0), abs=1e-3)
-        assert tail[-2]["t"] - recs[last_drive]["t"] < 1.0
+        yield vlog
     finally:
         procs.stop(emu)
+
+
+def frames(vlog, since: int = 0) -> list[dict]:
+    return [json.loads(ln) for ln in vlog.read_text().splitlines()[since:]]
+
+
+def mapping():
+    from racecav.common.config import load_config
+    from racecav.common.vehicle import load_car
+    from racecav.services.actuator.control import Mapping
+
+    return Mapping(load_config().actuator, load_car("slash"))
+
+
+def drive(session, source: str, throttle: float, n: int = 15) -> None:
+    """Commands from a declared express publisher, as the controllers send them (it only sends
+    once it has heard of the actuator's subscription: the ACL must let that through too)."""
+    pub = session.declare_publisher(keys.topic(CAR, keys.CMD), express=True)
+    time.sleep(0.3)
+    try:
+        for k in range(n):
+            pub.put(command(source, k, throttle))
+            time.sleep(0.02)
+    finally:
+        pub.undeclare()
+
+
+def test_non_controller_accounts_never_reach_the_actuator(car, vesc):
+    start = len(frames(vesc))
+    car.start("actuator")
+    car.wait_ready("actuator", 30)
+    with car.session("monitor") as mon, car.session("policy") as pol:
+        procs.wait_alive(mon, CAR, "actuator")
+        info = lambda: get_status(mon, CAR, "actuator").info  # noqa: E731
+        drive(pol, "policy", 0.5)  # the controller's commands reach the motor
+        assert wait_until(lambda: info()["accepted"] >= 10, timeout=5)
+        accepted = info()["accepted"]
+        # Everyone else, even claiming to be the policy (the source field is self-declared):
+        for account in ("sensor", "sim", "actuator", "monitor"):
+            with car.session(account) as s:
+                drive(s, "policy", 0.9)
+        time.sleep(0.3)
+        st = info()
+        assert st["accepted"] == accepted and st["refused"] == 0 and st["malformed"] == 0
+        # The baseline account may publish commands, but the actuator only obeys its
+        # configured controller (actuator.controller = policy): refused, counted.
+        with car.session("baseline") as s:
+            drive(s, "baseline", 0.9, n=5)
+        assert wait_until(lambda: info()["refused"] >= 3, timeout=3)
+        assert info()["accepted"] == accepted
+        # Stopping the unit (SIGTERM, as systemctl stop) while the policy drives leaves the
+        # motor braked and the steering centred at once (the 3 s watchdog cannot be the cause).
+        drive(pol, "policy", 0.5, n=10)
+        assert car.stop("actuator") == 0
+    recs = frames(vesc, start)
+    m = mapping()
+    # The 0.9 commands never reached the VESC: every drive frame is the policy's 0.5.
+    drive_rpm = [r["value"] for r in recs if r["name"] == "SET_RPM" and r["value"] > 0]
+    assert drive_rpm and all(abs(v - m.erpm(0.5)) <= 1 for v in drive_rpm)
+    last_drive = max(i for i, r in enumerate(recs) if r["name"] == "SET_RPM" and r["value"] > 0)
+    tail = recs[last_drive + 1:]
+    assert [r["name"] for r in tail[-2:]] == ["SET_CURRENT_BRAKE", "SET_SERVO_POS"]
+    assert tail[-1]["value"] == pytest.approx(m.servo(0.0), abs=1e-3)
+    assert tail[-2]["t"] - recs[last_drive]["t"] < 1.0
+
+
+def test_a_killed_actuator_still_leaves_the_motor_neutral(car, vesc):
+    # SIGKILL (or a watchdog abort): no teardown runs, the VESC keeps the last command until
+    # systemd runs the unit's ExecStopPost (`racecav actuator --neutral`).
+    car.start("actuator")
+    car.wait_ready("actuator", 30)
+    with car.session("monitor") as mon, car.session("policy") as pol:
+        procs.wait_alive(mon, CAR, "actuator")
+        drive(pol, "policy", 0.5, n=10)
+        assert get_status(mon, CAR, "actuator").info["driving"] == "controller"
+        start = len(frames(vesc))
+        os.killpg(car.procs["actuator"].pid, signal.SIGKILL)
+        car.procs["actuator"].wait(10)
+    time.sleep(0.3)
+    after_kill = frames(vesc, start)
+    assert not any(r["name"] == "SET_CURRENT_BRAKE" for r in after_kill)  # nothing stopped it yet
+    assert car.run_command("actuator", "ExecStopPost") == 0
+    recs = frames(vesc, start)[len(after_kill):]
+    assert [r["name"] for r in recs] == ["SET_CURRENT_BRAKE", "SET_SERVO_POS"]
+    assert recs[1]["value"] == pytest.approx(mapping().servo(0.0), abs=1e-3)

@@ -210,10 +210,33 @@ class ActuatorService(Service):
             self.link.close()
 
 
+def send_neutral(cfg: Config, port: str | None = None) -> int:
+    """Write the neutral frames (motor per actuator.neutral, steering centred) once and return.
+
+    The racecav-actuator unit runs this as ExecStopPost: after a clean stop it repeats what the
+    teardown sent; after a crash, SIGKILL or watchdog abort (no teardown) it is what stops the car
+    before the VESC's own timeout would.
+    """
+    port = port or cfg.actuator.port
+    try:
+        with serial.Serial(port, cfg.actuator.baudrate, timeout=0.1, write_timeout=0.5) as ser:
+            ser.write(b"".join(Mapping(cfg.actuator).neutral_frames()))
+            ser.flush()
+    except (OSError, serial.SerialException) as e:
+        print(f"racecav actuator --neutral: {port}: {e}")
+        return 1
+    return 0
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", help="serial device (default: actuator.port, /dev/vesc)")
     p.add_argument("--name", default="actuator", help="service name (keys racecav/<car>/<name>/...)")
+    p.add_argument("--neutral", action="store_true",
+                   help="send neutral (brake, steering centred) once and exit, without joining the bus "
+                        "(the unit's ExecStopPost: a crashed actuator still leaves the motor stopped)")
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
+    if args.neutral:
+        return send_neutral(cfg, args.port)
     return ActuatorService(cfg, port=args.port, name=args.name).run()
