@@ -48,6 +48,19 @@ class MpcResult:
     cost: float
     x_pred: np.ndarray
     """(N+1, 5) predicted states (linear model)."""
+    flops: int = 0
+    """Floating point operations of the solve (see :meth:`MpcApf.flops`)."""
+
+
+def count_ops(fn) -> int:
+    """Arithmetic instructions of a casadi SX function (each +, -, *, /, exp, sin, ... counts
+    as one floating point operation; inputs, outputs, constants and copies do not)."""
+    import casadi as ca
+
+    if not fn.is_a("SXFunction"):
+        return 0
+    skip = {ca.OP_CONST, ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_PARAMETER, ca.OP_ASSIGN}
+    return sum(fn.instruction_id(k) not in skip for k in range(fn.n_instructions()))
 
 
 class MpcApf:
@@ -176,7 +189,20 @@ class MpcApf:
                     "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False},
                     "error_on_fail": False, "tol_pr": 1e-6, "tol_du": 1e-4}
             self.solver = ca.nlpsol("mpc", "sqpmethod", nlp, opts)
+        self.fn_ops = {name: count_ops(self.solver.get_function(name)) for name in self.solver.get_function()}
         self.reset()
+
+    def flops(self, stats: dict) -> int:
+        """Floating point operations of one solve, from the solver's call counts (the method of
+        docs/controllers.md): every call of a casadi function costs its arithmetic instruction
+        count (:func:`count_ops`); each SQP iteration adds the convexification (symmetric
+        eigendecomposition, ~9 n^3) and the QP (dense QR of the (n + m)-sized KKT system,
+        ~(4/3) (n + m)^3 per factorisation, one counted per QP: a lower bound)."""
+        n, m = self.n_w, self.n_g
+        total = sum(int(stats.get(f"n_call_{name}", 0)) * ops for name, ops in self.fn_ops.items())
+        total += int(stats.get("n_call_convexify", 0)) * 9 * n ** 3
+        total += int(stats.get("n_call_QP", 0)) * (4 * (n + m) ** 3) // 3
+        return int(total)
 
     def reset(self) -> None:
         """Forget the warm start (new episode)."""
@@ -242,7 +268,7 @@ class MpcApf:
         starts = self._starts() if multi_start else [self.u]
         z0 = p[:5]
         t0 = time.perf_counter()
-        best, iters = None, 0
+        best, iters, flops = None, 0, 0
         for k, u0 in enumerate(starts):
             pk = p
             if k > 0:  # linearise about this start's own rollout
@@ -253,6 +279,7 @@ class MpcApf:
             sol = self.solver(x0=w0, p=pk, lbx=self.lbx, ubx=self.ubx, lbg=self.g_lb, ubg=self.g_ub, **lam)
             st = self.solver.stats()
             iters += int(st.get("iter_count", 0))
+            flops += self.flops(st)
             w = np.asarray(sol["x"]).ravel()
             # sqpmethod may leave "success" unset when it converges at iteration 0: trust the status
             ok = (bool(st.get("success", False)) or st.get("return_status") in SUCCESS) and bool(np.all(np.isfinite(w)))
@@ -277,4 +304,4 @@ class MpcApf:
         self.lam_g = np.concatenate([lam_g[ng:], lam_g[-ng:]])
         self.u_applied = u[:2].copy()
         self.last_start = k
-        return MpcResult(float(u[0]), float(u[1]), iters, solve_s, ok, status, f, x_pred)
+        return MpcResult(float(u[0]), float(u[1]), iters, solve_s, ok, status, f, x_pred, flops)

@@ -137,7 +137,7 @@ class MpcApfController:
         self.solve_ms.append(res.solve_s * 1e3)
         self.iters.append(res.iterations)
         self.failures += not res.success
-        self.last = {"iterations": res.iterations, "solve_ms": round(res.solve_s * 1e3, 3),
+        self.last = {"iterations": res.iterations, "solve_ms": round(res.solve_s * 1e3, 3), "flops": res.flops,
                      "success": res.success, "status": res.status, "cost": round(res.cost, 4),
                      "multi_start": bool(self.cfg.multi_start and near), "best_start": self.mpc.last_start,
                      "obstacles": len(obstacles), "tracks": len(self.perception.tracks),
