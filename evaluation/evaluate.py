@@ -137,6 +137,14 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
         if own_bar:
             bar.close()
     finished = [done[i] for i in sorted(done) if i < trials]
+    sim_counters, ctrl_counters = {}, {}
+    try:
+        info = harness.status_info()
+        sim_counters = {k: info[k] for k in ("lockstep_republish", "stale_commands", "watchdog_brakes", "overruns",
+                                             "episode") if k in info}
+        ctrl_counters = harness.controller_status().info
+    except Exception as e:  # a dead process: the stopped_reason already says why
+        sim_counters = {"status_error": str(e)[:200]}
     res = R.RunResult(
         created_utc=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), git_commit=git_commit(),
         machine=machine(),
@@ -144,7 +152,8 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
         controller=R.ControllerInfo(name=harness.ctrl.name, command=["racecav", *harness.ctrl.args],
                                     service=harness.ctrl.service),
         mode=harness.mode, base_seed=base_seed, trials_requested=trials, complete=len(finished) == trials,
-        stopped_reason=stopped, wall_s=time.monotonic() - wall0, summary=R.summarize(finished), trials=finished)
+        stopped_reason=stopped, wall_s=time.monotonic() - wall0, summary=R.summarize(finished),
+        sim_counters=sim_counters, controller_counters=ctrl_counters, trials=finished)
     return res, error
 
 

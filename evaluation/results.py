@@ -17,7 +17,7 @@ import hashlib
 import json
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -152,6 +152,11 @@ class RunResult(_Strict):
     """Why a partial run stopped (interrupt, error text)."""
     wall_s: float
     summary: Summary
+    sim_counters: dict[str, int | float | str | bool | None] = {}
+    """The sim service's status at the end (lockstep_republish, stale_commands, watchdog_brakes,
+    overruns...): a run that needed republished scans or braked on a silent controller shows it."""
+    controller_counters: dict[str, Any] = {}
+    """The controller service's status info at the end (answered, stale, malformed...)."""
     trials: list[Trial]
 
 
