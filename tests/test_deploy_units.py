@@ -42,6 +42,17 @@ def test_systemd_analyze_verify_every_unit(installed):
     assert r.returncode == 0 and not ours, r.stdout + r.stderr
 
 
+def test_hardening_exposure_stays_low(installed):
+    # systemd's own score of the sandbox (0 = locked down, 10 = exposed); ours are 1.4-1.6.
+    root, _ = installed
+    for name in install.SERVICES:
+        unit = root / f"etc/systemd/system/racecav-{name}.service"
+        r = subprocess.run([systemd_analyze(), "security", "--offline=yes", "--no-pager", "--threshold=20",
+                            str(unit)], capture_output=True, text=True)
+        level = re.search(r"Overall exposure level for \S+: ([0-9.]+)", r.stdout)
+        assert r.returncode == 0 and level and float(level.group(1)) <= 2.0, r.stdout[-500:] + r.stderr
+
+
 def test_systemd_analyze_catches_a_broken_unit(installed, tmp_path):
     # The check above can fail: a unit whose program is missing is an error, a typo a warning.
     root, _ = installed
