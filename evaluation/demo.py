@@ -39,6 +39,10 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
               "`racecav train` (see docs/training.md) and committed to the repository. "
               "Nothing was started.", file=sys.stderr)
         return 1
+    if getattr(args, "config", None):  # the services started below read the same file
+        import os
+
+        os.environ["RACECAV_CONFIG"] = str(Path(args.config).resolve())
     print(f"racecav demo: router + `racecav sim --scenario {args.scenario} --mode {args.mode}` + "
           f"`racecav {' '.join(ctrl.args)}` as separate processes; {args.trials} trials over Zenoh")
     eval_args = argparse.Namespace(

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -199,6 +200,8 @@ def summary_line(res) -> str:
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
+    if getattr(args, "config", None):  # the services the harness starts read the same file
+        os.environ["RACECAV_CONFIG"] = str(Path(args.config).resolve())
     if args.table:
         from racecav.evaluation.table import run_table
 
