@@ -126,14 +126,16 @@ def box_corners(x, y, yaw, hx, hy, out):
 
 
 @njit(cache=True, fastmath=True)
-def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, ray_t, amin, inc,
-          range_max, out):
+def lidar(x, y, yaw, active, observe, faces, chunks, corners, mount, ray_c, ray_s, ray_t, amin,
+          inc, range_max, out):
     """170-ray (or any) lidar of every observing car against walls and the other cars' boxes.
 
     :param x, y, yaw: (N, C) car poses.
     :param active: (N, C) bool, cars present in the world (others are neither seen nor see).
     :param observe: (N, C) bool, cars whose scan is computed.
     :param faces: (F, 4) float64 one-sided wall faces x0, y0, x1, y1 (see :func:`wall_faces`).
+    :param chunks: (K, 5) groups of consecutive faces: bounding circle x, y, radius, first face,
+        end face (see :func:`face_chunks`); one chunk holding every face disables the culling.
     :param corners: (N, C, 4, 2) box corners from :func:`box_corners`.
     :param mount: (3,) sensor x, y, yaw in the car frame.
     :param ray_c, ray_s, ray_t: cos/sin/tan of the ray angles (laser frame, |angle| < 90 deg).
@@ -142,16 +144,17 @@ def lidar(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, ray_t
     """
     N, C = x.shape
     buf = np.empty(ray_c.shape[0])
+    work = np.empty((chunks.shape[0], 2))
     for n in range(N):
         for c in range(C):
             if observe[n, c]:
-                _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_t,
-                          amin, inc, range_max, buf, out)
+                _scan_one(n, c, x, y, yaw, active, faces, chunks, corners, mount, ray_c, ray_s,
+                          ray_t, amin, inc, range_max, buf, work, out)
 
 
 @njit(cache=True, fastmath=True, parallel=True)
-def lidar_parallel(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray_s, ray_t, amin,
-                   inc, range_max, out):
+def lidar_parallel(x, y, yaw, active, observe, faces, chunks, corners, mount, ray_c, ray_s, ray_t,
+                   amin, inc, range_max, out):
     """:func:`lidar` with the scans spread over numba's threads."""
     N, C = x.shape
     for k in prange(N * C):
@@ -159,16 +162,24 @@ def lidar_parallel(x, y, yaw, active, observe, faces, corners, mount, ray_c, ray
         c = k % C
         if observe[n, c]:
             buf = np.empty(ray_c.shape[0])
-            _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_t,
-                      amin, inc, range_max, buf, out)
+            work = np.empty((chunks.shape[0], 2))
+            _scan_one(n, c, x, y, yaw, active, faces, chunks, corners, mount, ray_c, ray_s,
+                      ray_t, amin, inc, range_max, buf, work, out)
 
 
 @njit(cache=True, fastmath=True)
-def _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_t, amin, inc,
-              range_max, buf, out):
-    """The scan of car c of world n into out[n, c] (``buf``: work array of n_rays)."""
+def _scan_one(n, c, x, y, yaw, active, faces, chunks, corners, mount, ray_c, ray_s, ray_t, amin,
+              inc, range_max, buf, work, out):
+    """The scan of car c of world n into out[n, c] (``buf``: work array of n_rays, ``work``:
+    (n_chunks, 2)).
+
+    Order: the other cars' boxes, then the wall chunks nearest first. A chunk is skipped when
+    its bounding circle is out of range, outside the fan of rays, or occluded: every ray that can
+    reach the circle already holds a distance no larger than the circle's nearest point (then no
+    face of the chunk could change the buffer: the result is exactly that of rasterising all).
+    """
     C = x.shape[1]
-    M = faces.shape[0]
+    K = chunks.shape[0]
     R = ray_c.shape[0]
     inv_inc = 1.0 / inc
     cy = math.cos(yaw[n, c])
@@ -185,29 +196,7 @@ def _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_
     ws0 = sa * ray_c[0] + ca * ray_s[0]
     wc1 = ca * ray_c[R - 1] - sa * ray_s[R - 1]
     ws1 = sa * ray_c[R - 1] + ca * ray_s[R - 1]
-    for m in range(M):
-        ax = faces[m, 0] - sx
-        ay = faces[m, 1] - sy_
-        bx = faces[m, 2] - sx
-        by = faces[m, 3] - sy_
-        # back face (the cross product is rotation invariant): not seen
-        if ax * (by - ay) - ay * (bx - ax) >= 0.0:
-            continue
-        # both ends beyond range on one side: cannot be seen
-        if (ax > range_max and bx > range_max) or (ax < -range_max and bx < -range_max):
-            continue
-        if (ay > range_max and by > range_max) or (ay < -range_max and by < -range_max):
-            continue
-        # outside the fan of rays (both ends beyond the first or the last ray's line)
-        if wc0 * ay - ws0 * ax < 0.0 and wc0 * by - ws0 * bx < 0.0:
-            continue
-        if wc1 * ay - ws1 * ax > 0.0 and wc1 * by - ws1 * bx > 0.0:
-            continue
-        pax = ca * ax + sa * ay
-        pay = -sa * ax + ca * ay
-        pbx = ca * bx + sa * by
-        pby = -sa * bx + ca * by
-        _raster(buf, pax, pay, pbx, pby, ray_c, ray_s, ray_t, amin, inv_inc, R)
+    # the other cars first: they are near and occlude walls
     for j in range(C):
         if j == c or not active[n, j]:
             continue
@@ -223,6 +212,72 @@ def _scan_one(n, c, x, y, yaw, active, faces, corners, mount, ray_c, ray_s, ray_
             by = corners[n, j, k2, 1] - sy_
             _raster(buf, ca * ax + sa * ay, -sa * ax + ca * ay, ca * bx + sa * by,
                     -sa * bx + ca * by, ray_c, ray_s, ray_t, amin, inv_inc, R)
+    # wall chunks in range and in the fan of rays, nearest first (insertion sort)
+    ns = 0
+    for k in range(K):
+        rad = chunks[k, 2]
+        cx = chunks[k, 0] - sx
+        cy_ = chunks[k, 1] - sy_
+        if wc0 * cy_ - ws0 * cx < -rad or wc1 * cy_ - ws1 * cx > rad:
+            continue  # the circle is beyond the first or the last ray's line
+        d = math.sqrt(cx * cx + cy_ * cy_)
+        if d - rad > range_max:
+            continue
+        q = ns
+        while q > 0 and work[q - 1, 0] > d:
+            work[q, 0] = work[q - 1, 0]
+            work[q, 1] = work[q - 1, 1]
+            q -= 1
+        work[q, 0] = d
+        work[q, 1] = k
+        ns += 1
+    for kk in range(ns):
+        d = work[kk, 0]
+        k = int(work[kk, 1])
+        rad = chunks[k, 2]
+        cx = chunks[k, 0] - sx
+        cy_ = chunks[k, 1] - sy_
+        if d > rad:
+            # rays that can reach the circle; skip the chunk if they all already stop nearer
+            th = math.atan2(-sa * cx + ca * cy_, ca * cx + sa * cy_)
+            half = math.asin(rad / d)
+            i0 = int(math.floor((th - half - amin) * inv_inc)) - 1
+            i1 = int(math.ceil((th + half - amin) * inv_inc)) + 1
+            if i1 < 0 or i0 > R - 1:
+                continue
+            i0 = max(i0, 0)
+            i1 = min(i1, R - 1)
+            dmin = d - rad
+            hidden = True
+            for i in range(i0, i1 + 1):
+                if buf[i] > dmin:
+                    hidden = False
+                    break
+            if hidden:
+                continue
+        for m in range(int(chunks[k, 3]), int(chunks[k, 4])):
+            ax = faces[m, 0] - sx
+            ay = faces[m, 1] - sy_
+            bx = faces[m, 2] - sx
+            by = faces[m, 3] - sy_
+            # back face (the cross product is rotation invariant): not seen
+            if ax * (by - ay) - ay * (bx - ax) >= 0.0:
+                continue
+            # both ends beyond range on one side: cannot be seen
+            if (ax > range_max and bx > range_max) or (ax < -range_max and bx < -range_max):
+                continue
+            if (ay > range_max and by > range_max) or (ay < -range_max and by < -range_max):
+                continue
+            # outside the fan of rays (both ends beyond the first or the last ray's line)
+            if wc0 * ay - ws0 * ax < 0.0 and wc0 * by - ws0 * bx < 0.0:
+                continue
+            if wc1 * ay - ws1 * ax > 0.0 and wc1 * by - ws1 * bx > 0.0:
+                continue
+            pax = ca * ax + sa * ay
+            pay = -sa * ax + ca * ay
+            pbx = ca * bx + sa * by
+            pby = -sa * bx + ca * by
+            _raster(buf, pax, pay, pbx, pby, ray_c, ray_s, ray_t, amin, inv_inc, R)
     for i in range(R):
         out[n, c, i] = buf[i] if buf[i] < range_max else np.inf
 
@@ -233,7 +288,7 @@ def wall_faces(walls: np.ndarray, half_thickness: float, extend: float = 0.0) ->
     CCW, so that each face's outward normal is its right-hand normal (one-sided rasterising).
 
     :param walls: (M, 4) wall centre lines.
-    :return: (4M, 4) float64 faces x0, y0, x1, y1.
+    :return: (4M, 4) float64 faces x0, y0, x1, y1, the four of wall i at 4i..4i+3.
     """
     w = np.asarray(walls, dtype=np.float64)
     a, b = w[:, :2], w[:, 2:]
@@ -246,7 +301,22 @@ def wall_faces(walls: np.ndarray, half_thickness: float, extend: float = 0.0) ->
     p2 = b + extend * u + r * nl
     p3 = a - extend * u + r * nl
     faces = [np.concatenate(e, axis=1) for e in ((p0, p1), (p1, p2), (p2, p3), (p3, p0))]
-    return np.ascontiguousarray(np.concatenate(faces, axis=0))
+    # wall by wall (faces 4i..4i+3 belong to wall i): consecutive walls make compact chunks
+    return np.ascontiguousarray(np.stack(faces, axis=1).reshape(-1, 4))
+
+
+def face_chunks(faces: np.ndarray, per_chunk: int) -> np.ndarray:
+    """Groups of ``per_chunk`` consecutive faces with their bounding circles (for culling).
+
+    :return: (K, 5) float64 centre x, y, radius, first face, end face (exclusive).
+    """
+    out = []
+    for start in range(0, len(faces), per_chunk):
+        pts = faces[start:start + per_chunk].reshape(-1, 2)
+        centre = 0.5 * (pts.min(0) + pts.max(0))
+        rad = np.sqrt(((pts - centre) ** 2).sum(1)).max() + 1e-6
+        out.append([centre[0], centre[1], rad, start, min(start + per_chunk, len(faces))])
+    return np.asarray(out, dtype=np.float64).reshape(-1, 5)
 
 
 @njit(cache=True, fastmath=True, inline="always")

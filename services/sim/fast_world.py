@@ -34,6 +34,7 @@ RESPAWN_MIN_DIST_AGENT = 6.0  # ... and from the agent (over 2 s at its top spee
 RESET_YAW_NOISE = 0.1  # rad, +- around the centerline direction at a reset
 OBSTACLE_SPEED_FRACTION = (0.55, 1.0)  # each obstacle car's cruise speed / top speed, uniform
 GRAVITY = 9.81
+WALLS_PER_CHUNK = 4
 V_KIN = 0.3  # m/s: below this speed the single-track model is kinematic (tyre model singular)
 
 
@@ -169,6 +170,8 @@ class FastWorld:
         # wall boxes as the PyBullet backend builds them: extended by half a thickness at both
         # ends (no gaps at the joints of bends)
         self.faces = K.wall_faces(self.walls, self.wall_r, extend=self.wall_r)
+        # 4 walls (16 faces) per culling chunk: measured fastest of 2/4/8 on the racetrack
+        self.chunks = K.face_chunks(self.faces, 4 * WALLS_PER_CHUNK)
         # worlds without a centerline (intersection, open floor): no traffic, no random resets
         self.cl = dense_centerline(world) if world.centerline is not None else np.zeros((1, 4))
         if world.centerline is None and n_obstacles:
@@ -348,9 +351,10 @@ class FastWorld:
         self._scan_all(observe)
 
     def _scan_all(self, observe: np.ndarray) -> None:
-        self._lidar(self.x, self.y, self.yaw, self.active, observe, self.faces, self.corners,
-                    self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min,
-                    self.spec.angle_increment, self.spec.range_max, self.ranges)
+        self._lidar(self.x, self.y, self.yaw, self.active, observe, self.faces, self.chunks,
+                    self.corners, self.mount, self.ray_c, self.ray_s, self.ray_t,
+                    self.spec.angle_min, self.spec.angle_increment, self.spec.range_max,
+                    self.ranges)
 
     # ------------------------------------------------------------------ views
     def agent_obs(self) -> np.ndarray:
