@@ -104,7 +104,8 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
 
     sc = load_scenario(ref)
     digest = R.file_digest(path)
-    key = R.run_key(digest, harness.ctrl.name, harness.mode, base_seed)
+    weights = R.file_digest(harness.ctrl.model) if harness.ctrl.model is not None else None
+    key = R.run_key(digest, harness.ctrl.name, harness.mode, base_seed, weights)
     jsonl.parent.mkdir(parents=True, exist_ok=True)
     done = R.read_jsonl(jsonl, key) if resume else {}
     if not resume and jsonl.exists():
@@ -151,7 +152,7 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
         machine=machine(),
         scenario=R.ScenarioInfo(name=sc.name, ref=ref, digest=digest, duration_s=sc.duration_s),
         controller=R.ControllerInfo(name=harness.ctrl.name, command=["racecav", *harness.ctrl.args],
-                                    service=harness.ctrl.service),
+                                    service=harness.ctrl.service, weights_sha256=weights),
         mode=harness.mode, base_seed=base_seed, trials_requested=trials, complete=len(finished) == trials,
         stopped_reason=stopped, wall_s=time.monotonic() - wall0, summary=R.summarize(finished),
         sim_counters=sim_counters, controller_counters=ctrl_counters, trials=finished)

@@ -117,6 +117,8 @@ class ControllerInfo(_Strict):
     command: list[str]
     """The racecav command line that ran it."""
     service: str
+    weights_sha256: str | None = None
+    """sha256 of the policy weights file evaluated (DRL controllers)."""
 
 
 class Summary(_Strict):
@@ -225,9 +227,10 @@ def file_digest(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def run_key(scenario_digest: str, controller: str, mode: str, base_seed: int) -> str:
+def run_key(scenario_digest: str, controller: str, mode: str, base_seed: int, weights_digest: str | None = None) -> str:
     """What makes two runs' trials interchangeable (a resumed run must match it)."""
-    return f"{controller}|{mode}|seed{base_seed}|{scenario_digest[:16]}"
+    ctrl = controller if weights_digest is None else f"{controller}@{weights_digest[:12]}"
+    return f"{ctrl}|{mode}|seed{base_seed}|{scenario_digest[:16]}"
 
 
 def read_jsonl(path: Path, key: str) -> dict[int, Trial]:
