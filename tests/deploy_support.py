@@ -106,6 +106,8 @@ class DeployedCar:
     def command(self, name: str, key: str = "ExecStart") -> tuple[list[str], dict[str, str]]:
         """argv (of ExecStart or ``key``) and environment of racecav-<name>.service, with the
         unit's state/cache directories under the root."""
+        if name in self.notify:
+            self.notify[name].close()
         notify = self.notify[name] = Notify(name)
         argv, env = service_command(self.unit(name), {"PATH": os.environ.get("PATH", "/usr/bin:/bin"),
                                                       "NOTIFY_SOCKET": notify.addr}, key)
