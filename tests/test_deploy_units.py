@@ -115,6 +115,7 @@ def test_udev_rules_name_the_devices_by_vendor_and_product():
         assert parsed[name]["ATTRS{idVendor}"] == ("==", vid) and parsed[name]["ATTRS{idProduct}"] == ("==", pid)
     for kv in parsed.values():
         assert kv["SYMLINK"][0] == "+=" and kv["GROUP"] == ("=", "dialout") and kv["MODE"] == ("=", "0660")
+        assert kv["ENV{ID_MM_DEVICE_IGNORE}"] == ("=", "1")
 
 
 def test_install_dry_run_lists_everything_and_writes_nothing(tmp_path):
