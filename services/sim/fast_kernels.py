@@ -200,9 +200,14 @@ def _scan_one(n, c, x, y, yaw, active, faces, chunks, corners, mount, ray_c, ray
     for j in range(C):
         if j == c or not active[n, j]:
             continue
-        ddx = corners[n, j, 0, 0] - sx
-        ddy = corners[n, j, 0, 1] - sy_
-        if ddx * ddx + ddy * ddy > (range_max + 1.0) ** 2:
+        # the box's circumscribed circle (centre = middle of a diagonal): range and fan culls
+        ddx = 0.5 * (corners[n, j, 0, 0] + corners[n, j, 2, 0]) - sx
+        ddy = 0.5 * (corners[n, j, 0, 1] + corners[n, j, 2, 1]) - sy_
+        crad = 0.5 * math.hypot(corners[n, j, 2, 0] - corners[n, j, 0, 0],
+                                corners[n, j, 2, 1] - corners[n, j, 0, 1])
+        if ddx * ddx + ddy * ddy > (range_max + crad) ** 2:
+            continue
+        if wc0 * ddy - ws0 * ddx < -crad or wc1 * ddy - ws1 * ddx > crad:
             continue
         for k in range(4):
             k2 = (k + 1) % 4
