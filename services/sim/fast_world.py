@@ -202,7 +202,11 @@ class FastWorld:
         self.observe = np.zeros((N, C), dtype=bool)
         self.observe[:, 0] = True
         self.observe[:, 1:] = self.obstacle_lidar
-        self.check = np.ones((N, C), dtype=bool)
+        # contacts: the agent after every substep (it ends the episode), the obstacle cars once
+        # per control step (a touch only respawns them)
+        self.check_all = np.ones((N, C), dtype=bool)
+        self.check_agent = np.zeros((N, C), dtype=bool)
+        self.check_agent[:, 0] = True
         self.wall_hit = np.zeros((N, C), dtype=bool)
         self.car_hit = np.full((N, C), -1, dtype=np.int64)
         self._traffic_act = f((N, C, 2))
@@ -297,7 +301,7 @@ class FastWorld:
         target = vehicle_mod.steer_from_action(self.actions[..., 1], car)
         self.wall_hit[:] = False
         self.car_hit[:] = -1
-        for _ in range(self.substeps):
+        for k in range(self.substeps):
             self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
             self.delta_cmd = vehicle_mod.steer_rate_limit(self.delta_cmd, target, self.dt, car)
             K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
@@ -307,8 +311,9 @@ class FastWorld:
                         self.scrub_lat, V_KIN, self.dt)
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
-                       self.corners, self.hx, self.hy, self.wall_r, self.check, self.wall_hit,
-                       self.car_hit)
+                       self.corners, self.hx, self.hy, self.wall_r,
+                       self.check_all if k == self.substeps - 1 else self.check_agent,
+                       self.wall_hit, self.car_hit)
         K.wrap_angles(self.yaw)
         self.time += self.control_period
         collided = self.wall_hit[:, 0] | (self.car_hit[:, 0] >= 0)
