@@ -1,6 +1,6 @@
 """Hardware-in-the-loop on the deployed car: swapping racecav-sensor and racecav-sim at runtime
 keeps the policy (and the actuator) running; `racecav state` shows which scan source is live; a
-killed service restarted re-joins the bus.
+killed service restarted re-joins the bus; the baseline unit replaces the policy.
 
 Units run as processes from their ExecStart lines with the installed, secured config (see
 tests/deploy_support.py); the lidar and the VESC are the byte-exact emulators on ptys.
@@ -110,3 +110,15 @@ def test_sensor_sim_swap_keeps_the_policy_driving_and_state_shows_the_source(car
         live = state(car)
         assert live["policy"]["pid"] == car.procs["policy"].pid != pid
         assert live["policy"]["info"]["scan_source"] == "real"
+
+        # The other controller: `systemctl start racecav-baseline` stops the policy (Conflicts=).
+        # Its account may drive, but the actuator obeys only actuator.controller (= policy here).
+        car.stop("policy")
+        refused = get_status(mon, CAR, "actuator").info["refused"]
+        car.start("baseline")
+        car.wait_ready("baseline", 180)
+        assert wait_until(lambda: get_status(mon, CAR, "baseline").info["answered"] >= 5, timeout=60), \
+            car.log("baseline")
+        assert get_status(mon, CAR, "baseline").info["scan_source"] == "real"
+        assert wait_until(lambda: get_status(mon, CAR, "actuator").info["refused"] > refused, timeout=10)
+        assert "policy" not in live_services(mon, CAR)
