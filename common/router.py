@@ -1,7 +1,8 @@
 """``racecav router``: the car's Zenoh router, run in-process by the zenoh Python package.
 
 No zenohd package exists on PyPI or in Debian; the Python package can act as a router itself
-(mode "router"). To use a system zenohd instead, run ``zenohd -c deploy/zenoh/router.json5`` (or
+(mode "router"). To use a system zenohd instead, run ``zenohd -c /etc/racecav/zenoh/router.json5``
+(the secured config rendered by ``racecav deploy credentials``; docs/deploy.md) (or
 ``zenohd -l tcp/127.0.0.1:7447 --no-multicast-scouting``) and do not start this command: services
 only need an endpoint in ``bus.connect``.
 
