@@ -95,6 +95,16 @@ def test_state_command_needs_the_monitor_login(car):
 ACCOUNTS_ORDER = ("policy", "baseline", "actuator", "teleop", "sensor", "sim")
 
 
+def test_remote_config_made_by_credentials_works_over_mutual_tls(car):
+    # credentials/monitor-remote.toml is what a laptop uses (only the endpoint differs here).
+    remote = car.lay.etc / "credentials" / "monitor-remote.toml"
+    env = {"PATH": "/usr/bin:/bin", "RACECAV_BUS__CONNECT": f'["tls/localhost:{car.tls_port}"]'}
+    r = subprocess.run(procs.racecav_cmd("--config", str(remote), "state", "--json"), env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "router" in [s["service"] for s in json.loads(r.stdout)["services"]]
+
+
 def test_only_sensor_and_sim_accounts_publish_scans(car):
     got: list[str] = []
     with car.session("monitor") as mon:
