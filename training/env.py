@@ -105,7 +105,9 @@ class BulletBackend:
             raise ValueError(f"world: the overtaking env runs on the racetrack (got {settings.world!r})")
         traffic = None
         if driver is not None and not isinstance(driver, str):
-            traffic = driver if hasattr(driver, "act") else _PolicyTraffic(driver)
+            # a BulletWorld TrafficDriver (reset + act) as is; any other callable is a policy
+            is_driver = hasattr(driver, "act") and hasattr(driver, "reset")
+            traffic = driver if is_driver else _PolicyTraffic(driver)
         elif isinstance(driver, str) and driver not in ("centerline", "pure_pursuit"):
             raise ValueError(f"driver: unknown traffic driver {driver!r}")
         self.bw = BulletWorld("racetrack", car=car, traffic_driver=traffic,
