@@ -39,6 +39,10 @@ def test_options_are_validated():
         OvertakeEnv(heading="sideways")
     with pytest.raises(ValueError, match="n_obstacles"):
         OvertakeEnv(n_obstacles=16)
+    with pytest.raises(ValueError, match="control_period_s"):
+        OvertakeEnv(control_period=-0.1)
+    with pytest.raises(ValueError, match="backend"):
+        OvertakeEnv(backend="mujoco")
 
 
 # --------------------------------------------------------------------------- reward

@@ -43,8 +43,9 @@ def reward(throttle, a_delta_prev, a_delta):
 def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
     """The env section of the config with keyword overrides applied (validated)."""
     cfg = cfg or EnvConfig()
-    return cfg.model_copy(update={k: v for k, v in overrides.items() if v is not None}) if overrides \
-        else cfg
+    update = {k: v for k, v in overrides.items() if v is not None}
+    # validate (model_copy would not): a bad option is an error naming the field
+    return EnvConfig.model_validate({**cfg.model_dump(), **update}) if update else cfg
 
 
 def make_traffic_driver(spec):
