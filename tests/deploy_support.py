@@ -46,10 +46,15 @@ def ensure_tool(exe: str, package: str) -> str:
 
 
 def wait_until(pred, timeout=10.0, step=0.05) -> bool:
+    """True once ``pred()`` is; False after ``timeout`` s. A status query that got no answer in
+    time (RuntimeError from the client helpers, e.g. on a loaded CI machine) counts as not yet."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if pred():
-            return True
+        try:
+            if pred():
+                return True
+        except RuntimeError:
+            pass
         time.sleep(step)
     return False
 
