@@ -188,7 +188,8 @@ def make_credentials(etc: Path, car: str, tls: bool, hosts: list[str] | None = N
         plan.write(etc / "credentials" / f"{acct}.env", env, 0o600)
     if tls:
         tls_dir = etc / "tls"
-        if not (tls_dir / "ca.pem").exists() or force:
+        new_ca = not (tls_dir / "ca.pem").exists() or force
+        if new_ca:
             plan.note(f"make a local CA {tls_dir / 'ca.pem'} and {tls_dir / 'ca.key'} (mode 600)")
             if not plan.dry_run:
                 tls_dir.mkdir(parents=True, exist_ok=True)
@@ -201,9 +202,10 @@ def make_credentials(etc: Path, car: str, tls: bool, hosts: list[str] | None = N
             print(f"kept {tls_dir / 'ca.pem'} (exists)")
         sans = [("IP:" if _is_ip(h) else "DNS:") + h for h in (hosts or default_hosts())]
         # The router (user racecav) reads its own key: 640, group racecav.
-        _openssl(plan, tls_dir, "router", f"racecav-router-{car}", sans, force, 0o640, group)
+        # A new CA invalidates every certificate signed by the old one: re-issue them all.
+        _openssl(plan, tls_dir, "router", f"racecav-router-{car}", sans, new_ca, 0o640, group)
         for acct in REMOTE_ACCOUNTS:
-            _openssl(plan, tls_dir, acct, acct, [], force)
+            _openssl(plan, tls_dir, acct, acct, [], new_ca)
             host = next((h for h in (hosts or default_hosts()) if h not in ("localhost", "127.0.0.1")), "localhost")
             remote = (f"# {acct} on another machine: copy this file, tls/ca.pem, tls/{acct}.pem and tls/{acct}.key\n"
                       f"# there, fix the paths, and run e.g. `racecav --config {acct}-remote.toml state`.\n"
