@@ -430,3 +430,41 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
                  f"({'/'.join(f'{v:.0f}' for v in rev)} %).")
         L.append("")
     return "\n".join(L) + "\n"
+
+
+def record_observations(path: Path, seed: int = 7) -> Path:
+    """Record real observations for the SB3-vs-numpy equality test (tests/data/policy_obs.npz):
+    fast-world scans with traffic (both headings, racing policy driving) and PyBullet
+    intersection scans, including near-contact ones."""
+    import numpy as np
+
+    from racecav.services.policy.model import load_policy
+    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.training.vec_env import FastVecEnv
+
+    pol = load_policy("racing")
+    rng = np.random.default_rng(seed)
+    out = []
+    for heading in ("default", "reversed"):
+        env = FastVecEnv(n_envs=16, heading=heading, n_obstacles=15, driver="policy:racing", seed=seed)
+        obs = env.reset()
+        for k in range(60):
+            a = pol(obs)
+            a[:, 1] += rng.normal(0, 0.3, len(a))  # some off-policy wandering: walls up close
+            obs, *_ = env.step(np.clip(a, -1, 1))
+            if k % 20 == 19:
+                out.append(obs.copy())
+    for sc in SCENARIOS:
+        bw = BulletWorld(sc)
+        obs = bw.reset(seed=seed)
+        for k in range(40):
+            obs, _, col, _ = bw.step(pol(obs[0]))
+            if k % 5 == 0:
+                out.append(obs.copy())
+            if col[0]:
+                break
+        bw.close()
+    arr = np.concatenate(out).astype(np.float32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, obs=arr)
+    return path
