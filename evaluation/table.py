@@ -33,6 +33,12 @@ def _pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:.0f}"
 
 
+def _seed_text(seeds: dict) -> str:
+    if len(set(seeds.values())) == 1:
+        return str(next(iter(seeds.values())))
+    return "(" + ", ".join(f"{SHORT[s]} {v}" for s, v in seeds.items()) + ")"
+
+
 def cell_text(res) -> str:
     s = res.summary
     if not s.trials:
@@ -127,11 +133,13 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     if args.mode != "lockstep":
         cmd += f" --mode {args.mode}"
     stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    trial_wall = sum(t.wall_s for r in results.values() for t in r.trials)
     lines = [
         "# Results: collision-avoidance success (the paper's Table 1), latency, trajectories",
         "",
         f"Written by `{cmd}` on {stamp}, {machine()}, commit {git_commit()}, "
-        f"wall time {wall_s / 60:.1f} min. Nothing here is typed by hand.",
+        f"wall time {wall_s / 60:.1f} min (trials alone: {trial_wall / 60:.1f} min, whichever invocation ran "
+        "them). Nothing here is typed by hand.",
         "",
     ]
     if error is not None:
@@ -141,8 +149,8 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         "## Success rate (%) with 95 % Wilson interval, beside the paper",
         "",
         f"Ours: PyBullet sim service (`racecav sim --mode {args.mode}`) driven over Zenoh by the controller "
-        f"service, {trials} seeded trials per cell (trial i: seed {', '.join(f'{SHORT[s]} {seeds[s]}' for s in seeds)} "
-        "+ i; the same seeds for every controller). Paper: 10 trials on the 1/10-scale car.",
+        f"service, {trials} seeded trials per cell (trial i uses seed {_seed_text(seeds)} + i; the same seeds for "
+        "every controller). Paper: 10 trials on the 1/10-scale car.",
         "",
         "| controller | " + " | ".join(f"{SHORT[s]} ours | {SHORT[s]} paper" for s in SCENARIOS) + " |",
         "|---|" + "---:|---:|" * len(SCENARIOS),
@@ -181,7 +189,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
               "the controller's own `compute_ns`. In lockstep mode the sim applies each command `compute_ns` "
               "into the control period (a slow controller pays for its slowness in sim time).", "",
               "| controller | scenario | trials | success | collisions | median min gap (m) | mean progress (m) "
-              "| scan->cmd median / p99 (ms) | compute median / p99 (ms) | wall (s) |",
+              "| scan->cmd median / p99 (ms) | compute median / p99 (ms) | trials wall (s) |",
               "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     f = lambda v, d=2: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731
     for n in names:
@@ -193,7 +201,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
             lines.append(f"| {CONTROLLERS[n].label} | {sc} | {s.trials} | {s.successes} | {s.collisions} | "
                          f"{f(s.median_min_gap_m)} | {f(s.mean_progress_m)} | {f(s.latency_ms.median, 3)} / "
                          f"{f(s.latency_ms.p99, 3)} | {f(s.compute_ms.median, 3)} / {f(s.compute_ms.p99, 3)} | "
-                         f"{r.wall_s:.0f} |")
+                         f"{sum(t.wall_s for t in r.trials):.0f} |")
     lines += ["", "Paper, Table 2 (Jetson Orin AGX): DRL 30,466 FLOPs, 0.206 ms; MPC-APF 960,000 FLOPs, 13.2 ms "
               "(this machine's numbers: `racecav bench controllers`, docs/benchmarks.md).", ""]
     # Figure 4: one trial per scenario of the reversed-heading policy (or the first controller run)
