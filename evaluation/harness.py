@@ -49,9 +49,9 @@ class Controller:
 
 
 def _policy_model(name: str) -> Path:
-    spec = importlib.util.find_spec("racecav.services.policy")
-    base = Path(spec.origin).parent if spec and spec.origin else Path(__file__).resolve().parents[1] / "services" / "policy"
-    return base / "models" / f"{name}.npz"
+    from racecav.services.policy.model import MODELS_DIR
+
+    return MODELS_DIR / f"{name}.npz"
 
 
 def _hold_speed_throttle(speed: float) -> float:

@@ -79,3 +79,10 @@ def test_footprint_gap():
     assert gap[1] == pytest.approx(0.0, abs=1e-12)   # rotated box touching the front edge
     assert gap[2] == pytest.approx(0.2)   # side by side: 0.5 - 0.15 - 0.15
     assert gap[3] == 0.0                  # overlapping
+
+
+def test_cli_controller_names_match_the_harness():
+    from racecav.evaluation.evaluate import CONTROLLER_NAMES
+    from racecav.evaluation.harness import CONTROLLERS
+
+    assert set(CONTROLLER_NAMES) == set(CONTROLLERS)
