@@ -271,7 +271,7 @@ class BaselineConfig(Section):
     """Charges along an obstacle car's length (line charge)."""
     w_boundary: float = Field(5.0, ge=0)
     """Peak of one static boundary point's potential."""
-    boundary_margin: float = Field(0.2, gt=0)
+    boundary_margin: float = Field(0.25, gt=0)
     """Clearance (m) beyond contact at which a boundary point's Gaussian has fallen to 5 %."""
     w_throttle: float = Field(0.05, ge=0)
     """Input effort: throttle."""

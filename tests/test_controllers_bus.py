@@ -44,7 +44,8 @@ def test_policy_and_baseline_drive_the_sim_interchangeably(spawn, session, tmp_p
     base = spawn("baseline")
     _wait(lambda: len(states) > 45 or any(s.collided for s in states), 90, "baseline did not drive 45 steps")
     st = get_status(session, "car0", "sim")
-    assert st.info["last_source"] == "baseline" and not st.info["collided"]
+    assert st.info["last_source"] == "baseline" and not st.info["collided"], \
+        " ".join(f"{s.x:.2f},{s.y:.2f},{s.vx:.2f}" for s in states)
     assert states[-1].x - states[0].x > 3.0           # past the parked car at x = -2 ...
     assert max(abs(s.y) for s in states) > 0.3        # ... by going around it
     b = get_status(session, "car0", "baseline")

@@ -69,6 +69,9 @@ class PerceptionParams:
     """Fraction of a cluster's points previously free for a detection to count as dynamic."""
     max_misses: int = 3
     coast_s: float = 1.0
+    """s: a track that left the field of view is kept (predicted) this long."""
+    memory_s: float = 1.5
+    """s: static points that left the field of view are remembered this long."""
 
 
 @dataclass
@@ -154,10 +157,12 @@ class Perception:
         self.tracks: list[Track] = []
         self._next_id = 1
         self._prev = None
+        self._memory = (np.zeros((0, 2)), np.zeros(0))
 
     def reset(self) -> None:
         self.tracks = []
         self._prev = None
+        self._memory = (np.zeros((0, 2)), np.zeros(0))
 
     def detect(self, ranges: np.ndarray, pose) -> tuple[list[tuple[np.ndarray, float, float]], list[np.ndarray]]:
         """Obstacle candidates [(centre (2,), extent, free-space evidence)] and every cluster's
@@ -209,14 +214,35 @@ class Perception:
         free = inside & (before > rng + self.p.free_margin)
         return float(free.sum()) / len(points)
 
+    def _in_view(self, xy: np.ndarray, pose) -> np.ndarray:
+        """Which odometry-frame points (k, 2) lie inside the lidar's field of view and range."""
+        x, y, yaw = pose
+        dx, dy = xy[:, 0] - x, xy[:, 1] - y
+        fx = np.cos(yaw) * dx + np.sin(yaw) * dy - self.car.lidar_mount.x
+        fy = -np.sin(yaw) * dx + np.cos(yaw) * dy
+        return (np.abs(np.arctan2(fy, fx)) < self.half_fov - 0.05) & (np.hypot(fx, fy) < self.p.max_range)
+
     def _visible(self, tr: Track, pose) -> bool:
         """Whether a track's position lies inside the lidar's field of view and range."""
-        x, y, yaw = pose
-        dx, dy = tr.x - x, tr.y - y
-        fx, fy = np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy
-        fx -= self.car.lidar_mount.x
-        ang = np.arctan2(fy, fx)
-        return abs(ang) < self.half_fov - 0.05 and np.hypot(fx, fy) < self.p.max_range
+        return bool(self._in_view(np.array([[tr.x, tr.y]]), pose)[0])
+
+    def _remember(self, boundary: np.ndarray, compact: np.ndarray, pose, t: float) -> np.ndarray:
+        """Static points seen now, plus points of compact static objects (``compact``: a parked
+        car, a corner; not long walls, which the ego drives along) seen in the last ``memory_s``
+        that are now out of view: a parked car beside the ego, outside the 90 deg field of view,
+        still bounds it. Inside the view the current scan is authoritative."""
+        mem, mem_t = self._memory
+        if len(mem):
+            x, y, yaw = pose
+            ahead = np.cos(yaw) * (mem[:, 0] - x) + np.sin(yaw) * (mem[:, 1] - y)
+            side = -np.sin(yaw) * (mem[:, 0] - x) + np.cos(yaw) * (mem[:, 1] - y)
+            # only beside the ego (the blind flanks of a 90 deg lidar); behind its rear they
+            # cannot be hit driving forward
+            beside = (ahead > -self.car.length / 2) & (ahead < self.car.length) & (np.abs(side) < 1.0)
+            keep = (t - mem_t <= self.p.memory_s) & ~self._in_view(mem, pose) & beside
+            mem, mem_t = mem[keep], mem_t[keep]
+        self._memory = (np.concatenate([compact, mem]), np.concatenate([np.full(len(compact), t), mem_t]))
+        return np.concatenate([boundary, mem]) if len(mem) else boundary
 
     def update(self, ranges: np.ndarray, pose, t: float) -> Percept:
         """Process one scan.
@@ -295,6 +321,8 @@ class Perception:
         moving.sort(key=lambda tr: np.hypot(tr.x - ex, tr.y - ey))
         static = [q for gi, q in enumerate(samples) if gi not in moving_clusters]
         boundary = np.concatenate(static) if static else np.zeros((0, 2))
+        compact = [samples[gi] for gi in self._cand_cluster if gi not in moving_clusters]
+        boundary = self._remember(boundary, np.concatenate(compact) if compact else np.zeros((0, 2)), pose, t)
         if len(boundary):
             boundary = boundary[np.argsort(np.hypot(boundary[:, 0] - ex, boundary[:, 1] - ey))]
         return Percept(moving, boundary, len(samples), len(cands))
