@@ -165,13 +165,21 @@ class BaselineService(ControllerService):
 
     def setup(self) -> None:
         super().setup()
-        self.states = self.inbox(self.topic(keys.STATE), VehicleState) if self.bcfg.ego_state != "model" else None
-        self.truth = self.inbox(self.topic(keys.OBSTACLES), ObstacleStates) if self.bcfg.obstacles == "oracle" else None
+        # side inputs: only the newest matters and it is read, not consumed (no drop counting)
+        self._latest: dict[str, tuple] = {"state": (None, 0), "truth": (None, 0)}
+
+        def keep(name):
+            return lambda msg: self._latest.__setitem__(name, (msg, time.monotonic_ns()))
+
+        if self.bcfg.ego_state != "model":
+            self.subscribe(self.topic(keys.STATE), VehicleState, keep("state"))
+        if self.bcfg.obstacles == "oracle":
+            self.subscribe(self.topic(keys.OBSTACLES), ObstacleStates, keep("truth"))
 
     def act(self, scan: Scan) -> tuple[float, float] | None:
-        state, arrival = self.states.latest() if self.states is not None else (None, 0)
-        truth = self.truth.latest()[0] if self.truth is not None else None
-        if self.truth is not None and truth is None:
+        state, arrival = self._latest["state"]
+        truth = self._latest["truth"][0]
+        if self.bcfg.obstacles == "oracle" and truth is None:
             return None  # oracle mode without ground truth: no command (counted as no_action)
         return self.ctl.act(scan, state, arrival, truth)
 
