@@ -232,13 +232,14 @@ class MpcApf:
             out[k + 1] = x, y, psi, v, d
         return out
 
-    def params(self, z0, lane, v_ref, obstacles, boundary) -> np.ndarray:
+    def params(self, z0, lane, v_ref, obstacles, boundary, boundary_weight=None) -> np.ndarray:
         """Parameter vector (ego frame); also prepares the warm start.
 
         :param z0: (x, y, psi, v, delta) now (x = y = psi = 0 in the ego frame).
         :param lane: (x, y, direction) of the lane reference line.
         :param obstacles: rows (x, y, vx, vy, heading, half_length), nearest first.
         :param boundary: (M, 2) boundary points, nearest first.
+        :param boundary_weight: (M,) factors on ``w_boundary`` (default 1).
         """
         obs = np.zeros((self.n_obs, OBS_FIELDS))
         obs[:, 0] = 1e3  # unused slots far away with weight 0
@@ -248,7 +249,7 @@ class MpcApf:
         bnd[:, 0] = 1e3
         b = np.asarray(boundary, np.float64).reshape(-1, 2)[: self.n_bnd]
         bnd[: len(b), :2] = b
-        bnd[: len(b), 2] = 1.0
+        bnd[: len(b), 2] = 1.0 if boundary_weight is None else np.asarray(boundary_weight, np.float64)[: len(b)]
         z0 = np.asarray(z0, np.float64)
         traj = self.rollout(z0, self.u)
         self.z_guess = traj[1:].ravel()

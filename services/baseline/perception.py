@@ -70,6 +70,9 @@ class PerceptionParams:
     max_misses: int = 3
     coast_s: float = 1.0
     """s: a track that left the field of view is kept (predicted) this long."""
+    compact_weight: float = 1.0
+    """Factor on the boundary potential of compact static objects (a parked car, a corner). 1 =
+    like walls; 3 (more room) made the ego stall in front of a parked car and hit it in tests."""
     memory_s: float = 1.5
     """s: static points that left the field of view are remembered this long."""
 
@@ -106,6 +109,8 @@ class Percept:
     """Moving confirmed tracks, nearest first."""
     boundary: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     """(M, 2) static boundary points (odometry frame), nearest first."""
+    weight: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(M,) potential factor per boundary point: ``compact_weight`` for compact objects."""
     clusters: int = 0
     candidates: int = 0
 
@@ -226,11 +231,11 @@ class Perception:
         """Whether a track's position lies inside the lidar's field of view and range."""
         return bool(self._in_view(np.array([[tr.x, tr.y]]), pose)[0])
 
-    def _remember(self, boundary: np.ndarray, compact: np.ndarray, pose, t: float) -> np.ndarray:
-        """Static points seen now, plus points of compact static objects (``compact``: a parked
-        car, a corner; not long walls, which the ego drives along) seen in the last ``memory_s``
-        that are now out of view: a parked car beside the ego, outside the 90 deg field of view,
-        still bounds it. Inside the view the current scan is authoritative."""
+    def _remember(self, compact: np.ndarray, pose, t: float) -> np.ndarray:
+        """Points of compact static objects (a parked car, a corner; not long walls, which the
+        ego drives along) seen now, plus those seen in the last ``memory_s`` that are now out of
+        view beside the ego: a parked car beside the ego, outside the 90 deg field of view, still
+        bounds it. Inside the view the current scan is authoritative."""
         mem, mem_t = self._memory
         if len(mem):
             x, y, yaw = pose
@@ -242,7 +247,7 @@ class Perception:
             keep = (t - mem_t <= self.p.memory_s) & ~self._in_view(mem, pose) & beside
             mem, mem_t = mem[keep], mem_t[keep]
         self._memory = (np.concatenate([compact, mem]), np.concatenate([np.full(len(compact), t), mem_t]))
-        return np.concatenate([boundary, mem]) if len(mem) else boundary
+        return self._memory[0]
 
     def update(self, ranges: np.ndarray, pose, t: float) -> Percept:
         """Process one scan.
@@ -319,10 +324,14 @@ class Perception:
         ex, ey = pose[0], pose[1]
         moving = [tr for tr in self.tracks if id(tr) in moving_ids]
         moving.sort(key=lambda tr: np.hypot(tr.x - ex, tr.y - ey))
-        static = [q for gi, q in enumerate(samples) if gi not in moving_clusters]
-        boundary = np.concatenate(static) if static else np.zeros((0, 2))
+        cand = set(self._cand_cluster)
+        walls = [q for gi, q in enumerate(samples) if gi not in cand]
         compact = [samples[gi] for gi in self._cand_cluster if gi not in moving_clusters]
-        boundary = self._remember(boundary, np.concatenate(compact) if compact else np.zeros((0, 2)), pose, t)
+        walls = np.concatenate(walls) if walls else np.zeros((0, 2))
+        compact = self._remember(np.concatenate(compact) if compact else np.zeros((0, 2)), pose, t)
+        boundary = np.concatenate([walls, compact])
+        weight = np.concatenate([np.ones(len(walls)), np.full(len(compact), p.compact_weight)])
         if len(boundary):
-            boundary = boundary[np.argsort(np.hypot(boundary[:, 0] - ex, boundary[:, 1] - ey))]
-        return Percept(moving, boundary, len(samples), len(cands))
+            order = np.argsort(np.hypot(boundary[:, 0] - ex, boundary[:, 1] - ey))
+            boundary, weight = boundary[order], weight[order]
+        return Percept(moving, boundary, weight, len(samples), len(cands))

@@ -129,7 +129,7 @@ class MpcApfController:
         bnd = (percept.boundary - origin) @ R.T if len(percept.boundary) else np.zeros((0, 2))
         lx, ly = R @ (np.array(self.lane[:2]) - origin)
         lane = (lx, ly, self.lane[2] - yaw)
-        p = self.mpc.params((0.0, 0.0, 0.0, v, delta), lane, self.cfg.v_ref, obstacles, bnd)
+        p = self.mpc.params((0.0, 0.0, 0.0, v, delta), lane, self.cfg.v_ref, obstacles, bnd, percept.weight)
         # several initial guesses only when something is near: free driving stays cheap
         near = bool(obstacles) or (len(bnd) and float(np.min(np.hypot(bnd[:, 0], bnd[:, 1]))) < self.cfg.multi_start_range)
         res = self.mpc.solve(p, multi_start=self.cfg.multi_start and near)
