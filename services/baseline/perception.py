@@ -20,6 +20,9 @@ policy sees, in the odometry frame.
    spaced along each cluster. A car standing still is thus avoided like a wall, and a wall
    fragment whose visible part slides as the ego moves (occlusion, field of view) cannot fake a
    moving obstacle: its new points were never seen free.
+6. Memory: points of compact static objects that leave the field of view beside the ego are
+   kept for ``memory_s`` (the 90 deg lidar is blind on the flanks, where a parked car is while
+   the ego passes it).
 """
 
 from __future__ import annotations
