@@ -97,15 +97,21 @@ def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) ->
     contact = np.zeros(episodes, bool)
     length = np.zeros(episodes)
     prog = np.zeros(episodes)
-    lap = env.world.world.length
+    track = env.world.world
+    lap = track.length
     sign = -1.0 if settings["heading"] == "reversed" else 1.0
-    s_prev = env.world.progress()
+
+    def where():
+        st = env.world.agent_state
+        return track.progress(st[:, 0], st[:, 1])
+
+    s_prev = where()
     while not done.all():
         obs, r, d, infos = env.step(policy(obs))
         live = ~done
         ret[live] += r[live]
         length[live] += 1
-        s = env.world.progress()  # (after a reset of a done world: ignored, it is not live)
+        s = where()  # (after a reset of a done world: ignored, that world is no longer live)
         ds = (s - s_prev + lap / 2) % lap - lap / 2
         prog[live & ~d] += sign * ds[live & ~d]
         s_prev = s
@@ -116,28 +122,39 @@ def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) ->
             "env_ep_len": float(length.mean()), "env_progress": float(prog.mean())}
 
 
-def eval_scenario(policy, scenario: str, trials: int, seed0: int) -> dict:
-    """In-process PyBullet trials of one intersection scenario: success, contact, progress."""
+def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 0) -> dict:
+    """In-process PyBullet trials of one intersection scenario: success, contact, progress.
+
+    :param record: keep the ego and obstacle paths of the first ``record`` trials (key "paths").
+    """
     from racecav.services.sim.bullet_world import BulletWorld
 
     bw = BulletWorld(scenario)
     dur = bw.scenario.duration_s
     ok = contact = 0
-    prog = []
+    prog, paths = [], []
     try:
         for k in range(trials):
             obs = bw.reset(seed=seed0 + k)
             collided = False
+            path = []
             while bw.t < dur - 1e-9 and not collided:
                 obs, _, col, _ = bw.step(policy(obs[0]))
                 collided = bool(col[0])
+                if k < record:
+                    path.append([*bw.agent_state()[:2], *[c for o in bw.obstacles()[:, :2] for c in o]])
             ok += bw.success()
             contact += collided
             prog.append(bw.progress())
+            if k < record:
+                paths.append({"xy": path, "success": bool(bw.success()), "contact": collided})
     finally:
         bw.close()
-    return {"success": ok / trials, "contact": contact / trials,
-            "progress": sum(prog) / len(prog), "trials": trials}
+    out = {"success": ok / trials, "contact": contact / trials,
+           "progress": sum(prog) / len(prog), "trials": trials}
+    if record:
+        out["paths"] = paths
+    return out
 
 
 def _checkpoints(run_dir: Path) -> list[Path]:
@@ -317,14 +334,18 @@ def report(args, cfg) -> int:
         meta_path = MODELS_DIR / f"{name}.json"
         meta = json.loads(meta_path.read_text())
         stored = meta.get("evaluation", {})
-        if args.reuse and stored.get("trials") == args.trials:
+        if (args.reuse and stored.get("trials") == args.trials
+                and (REPO / "docs" / "img" / f"training_paths_{name}.png").is_file()):
             results[name] = stored
             continue
         res = {"trials": args.trials, "seed0": REPORT_SEED, "backend": "pybullet"}
+        paths = {}
         for sc in SCENARIOS:
-            r = eval_scenario(pol, sc, args.trials, REPORT_SEED)
+            r = eval_scenario(pol, sc, args.trials, REPORT_SEED, record=10)
+            paths[sc] = r.pop("paths")
             res[sc] = r
             log.info("%s %s: %s", name, sc, r)
+        _plot_paths(name, paths)
         res["measured"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
         results[name] = res
         meta["evaluation"] = res
@@ -334,6 +355,40 @@ def report(args, cfg) -> int:
     doc.write_text(_markdown(results, curves, time.time() - t0))
     print(f"wrote {doc}")
     return 0
+
+
+def _plot_paths(name: str, paths: dict) -> Path:
+    """Ego (coloured by outcome) and obstacle paths of the first trials of each scenario."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from racecav.common.world import load_world
+
+    walls = load_world("intersection").walls
+    fig, axes = plt.subplots(1, len(paths), figsize=(5 * len(paths), 5))
+    for ax, (sc, trials) in zip(np.atleast_1d(axes), paths.items()):
+        for x0, y0, x1, y1 in walls:
+            ax.plot([x0, x1], [y0, y1], color="0.4", lw=1)
+        for tr in trials:
+            xy = np.asarray(tr["xy"])
+            if not len(xy):
+                continue
+            c = "tab:green" if tr["success"] else ("tab:red" if tr["contact"] else "tab:orange")
+            ax.plot(xy[:, 0], xy[:, 1], color=c, lw=1.2)
+            ax.plot(xy[-1, 0], xy[-1, 1], "o", color=c, ms=3)
+            for j in range(2, xy.shape[1], 2):
+                ax.plot(xy[:, j], xy[:, j + 1], color="tab:blue", lw=0.6, alpha=0.5)
+        ax.set(title=f"{name}: {sc}", xlim=(-8.5, 8.5), ylim=(-8.5, 8.5), aspect="equal")
+    fig.suptitle("ego paths, first 10 trials: green success, red contact, orange no contact but "
+                 "short of min progress; blue obstacle", fontsize=9)
+    fig.tight_layout()
+    out = REPO / "docs" / "img" / f"training_paths_{name}.png"
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
 
 
 def _runs() -> dict[str, dict]:
@@ -392,6 +447,15 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
     notes = REPO / "docs" / "training_notes.md"
     if notes.is_file():
         L += [notes.read_text().strip(), ""]
+    for bj in sorted(COMMITTED.glob("bench_train_*.json")):
+        rows = json.loads(bj.read_text())
+        L += [f"### PPO throughput on this machine (`racecav bench train`, {bj.stem.split('_')[-1]} stage, "
+              "one training process, shared 2-core box)", "",
+              "| configuration | samples/s | time in PPO update | gradient steps per 1k samples |",
+              "|---|---|---|---|"]
+        L += [f"| {k} | {v['samples_per_s']:.0f} | {100 * v['update_share']:.0f} % | "
+              f"{v['grad_steps_per_1k_samples']:.1f} |" for k, v in rows.items()]
+        L.append("")
     L += ["## Runs", "",
           "| run | preset | samples | wall time | median samples/s | n_envs x n_steps | batch | epochs | normalise |",
           "|---|---|---|---|---|---|---|---|---|"]
@@ -420,6 +484,9 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
         L.append(f"| {name} | {meta.get('run')} {meta.get('training_steps', 0) / 1e6:.2f} M | {res['trials']} | "
                  f"{succ} | {cont} % |")
     L += ["", f"Evaluation wall time of this report: {eval_s / 60:.1f} min.", ""]
+    for name in results:
+        if (REPO / "docs" / "img" / f"training_paths_{name}.png").is_file():
+            L += [f"![{name} paths](img/training_paths_{name}.png)", ""]
     if "default" in results and "reversed" in results:
         d, r = results["default"]["head-to-head"]["success"], results["reversed"]["head-to-head"]["success"]
         L.append(f"Head-to-head: reversed {100 * r:.0f} % vs default {100 * d:.0f} % "
