@@ -289,6 +289,10 @@ class BaselineConfig(Section):
     """sqp: casadi sqpmethod + qrqp (fast); ipopt: interior point (slower, reference)."""
     max_iter: int = Field(20, ge=1)
     """Solver iteration limit per solve."""
+    compile: bool = True
+    """Compile the solver's derivative functions to C (system compiler, in the background at
+    start, cached under ~/.cache/racecav/mpc); until then and without a compiler casadi's virtual
+    machine runs them (same results, about 4x slower)."""
     multi_start: bool = False
     """Also solve from hard-left and hard-right initial guesses when something is near, keep the
     cheapest (the APF cost is non-convex; a single warm start finds only the nearest way)."""

@@ -23,9 +23,15 @@ eliminated (single shooting: the model is linear, so states are affine in the in
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+import subprocess
+import tempfile
+import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -191,8 +197,49 @@ class MpcApf:
                     "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False},
                     "error_on_fail": False, "tol_pr": 1e-6, "tol_du": 1e-4}
             self.solver = ca.nlpsol("mpc", "sqpmethod", nlp, opts)
+            self._sqp_opts = opts
         self.fn_ops = {name: count_ops(self.solver.get_function(name)) for name in self.solver.get_function()}
+        self.compiled = False
+        self.compile_error = ""
+        if cfg.compile and cfg.solver == "sqp":
+            # compile in the background: the controller runs on casadi's virtual machine meanwhile
+            threading.Thread(target=self._compile, name="mpc-compile", daemon=True).start()
         self.reset()
+
+    def _compile(self) -> None:
+        """Generate C for the solver's derivative functions (Jacobian and Lagrangian Hessian: most
+        of its time), build them with the system C compiler into a cache keyed by the code's
+        hash (same problem, same library: compiled once per machine), and swap in a solver that
+        calls them. Same operations, same results; only faster."""
+        import casadi as ca
+
+        try:
+            fns = {n: self.solver.get_function(n) for n in ("nlp_jac_fg", "nlp_hess_l")}
+            cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "racecav" / "mpc"
+            cache.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory() as tmp:
+                cg = ca.CodeGenerator("mpc_nlp.c")
+                for f in fns.values():
+                    cg.add(f)
+                cwd = os.getcwd()
+                os.chdir(tmp)  # the generator writes into the working directory
+                try:
+                    cg.generate()
+                finally:
+                    os.chdir(cwd)
+                src = Path(tmp) / "mpc_nlp.c"
+                so = cache / f"mpc_{hashlib.sha256(src.read_bytes()).hexdigest()[:16]}.so"
+                if not so.is_file():
+                    part = so.with_suffix(f".{os.getpid()}.tmp")
+                    subprocess.run([os.environ.get("CC", "cc"), "-O1", "-fPIC", "-shared", str(src), "-o", str(part)],
+                                   check=True, capture_output=True, timeout=600)
+                    part.replace(so)  # atomic: concurrent processes never load a half-written file
+            ext = {n: ca.external(n, str(so)) for n in fns}
+            opts = dict(self._sqp_opts, jac_fg=ext["nlp_jac_fg"], hess_lag=ext["nlp_hess_l"])
+            self.solver = ca.nlpsol("mpc", "sqpmethod", self.nlp, opts)
+            self.compiled = True
+        except Exception as e:  # no compiler, read-only home...: stay on the virtual machine
+            self.compile_error = f"{type(e).__name__}: {e}"[:300]
 
     def flops(self, stats: dict) -> int:
         """Floating point operations of one solve, from the solver's call counts (the method of
@@ -271,6 +318,7 @@ class MpcApf:
         starts = self._starts() if multi_start else [self.u]
         z0 = p[:5]
         t0 = time.perf_counter()
+        solver = self.solver  # one solver per call: the compiled one may be swapped in meanwhile
         best, iters, flops = None, 0, 0
         for k, u0 in enumerate(starts):
             pk = p
@@ -279,8 +327,8 @@ class MpcApf:
                 pk[5:5 + 3 * self.N] = self.rollout(z0, u0)[:-1, [2, 3, 4]].ravel()
             w0 = u0 if self.condensed else np.concatenate([u0, self.rollout(z0, u0)[1:].ravel()])
             lam = dict(lam_x0=self.lam_x, lam_g0=self.lam_g) if k == 0 else {}
-            sol = self.solver(x0=w0, p=pk, lbx=self.lbx, ubx=self.ubx, lbg=self.g_lb, ubg=self.g_ub, **lam)
-            st = self.solver.stats()
+            sol = solver(x0=w0, p=pk, lbx=self.lbx, ubx=self.ubx, lbg=self.g_lb, ubg=self.g_ub, **lam)
+            st = solver.stats()
             iters += int(st.get("iter_count", 0))
             flops += self.flops(st)
             w = np.asarray(sol["x"]).ravel()

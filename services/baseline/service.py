@@ -150,7 +150,8 @@ class MpcApfController:
         return {**self.last, "solve_ms_median": round(float(np.median(s)), 3),
                 "solve_ms_p99": round(float(np.percentile(s, 99)), 3),
                 "iterations_mean": round(float(np.mean(self.iters)) if self.iters else 0.0, 2),
-                "solver_failures": self.failures, "episodes": self.episodes}
+                "solver_failures": self.failures, "episodes": self.episodes,
+                "compiled": self.mpc.compiled, "compile_error": self.mpc.compile_error}
 
 
 class BaselineService(ControllerService):
