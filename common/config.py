@@ -247,6 +247,9 @@ class BaselineConfig(Section):
     """Where ego pose and speed come from: "state" = the state key (sim or odometry), "model" =
     dead reckoning of the car's own commands through the car model, "auto" = the state key while
     it is fresh, the model otherwise."""
+    speed_scale: float | None = Field(None, gt=0)
+    """Body speed per (wheel speed x wheel radius) in the speed model; None = the car file's
+    agent_speed_scale: the ego is the agent, as in training and on the actuator."""
     initial_speed: float = Field(1.0, ge=0)
     """Ego speed (m/s) the dead-reckoning model starts from (scenarios start at 1 m/s)."""
     max_state_age_s: float = Field(0.3, gt=0)

@@ -30,11 +30,14 @@ class EgoEstimator:
     :param mode: "auto" | "state" | "model".
     :param initial_speed: model start speed (m/s).
     :param max_state_age_s: a VehicleState older than this (wall clock) is not used.
+    :param speed_scale: body speed per wheel speed x radius (None: car.agent_speed_scale).
     """
 
     def __init__(self, car: CarParams, mode: str = "auto", initial_speed: float = 1.0,
-                 max_state_age_s: float = 0.3):
+                 max_state_age_s: float = 0.3, speed_scale: float | None = None):
         self.car, self.mode, self.initial_speed = car, mode, initial_speed
+        # body speed = speed_scale * wheel_radius * w (the ego is the agent: car.agent_speed_scale)
+        self.r_eff = car.wheel_radius * (car.agent_speed_scale if speed_scale is None else speed_scale)
         self.max_state_age_ns = int(max_state_age_s * 1e9)
         bic = car.bicycle
         self.wheelbase = bic.lf + bic.lr if bic.fitted else car.wheelbase
@@ -44,7 +47,7 @@ class EgoEstimator:
     def reset(self, x: float = 0.0, y: float = 0.0, yaw: float = 0.0, v: float | None = None) -> None:
         v = self.initial_speed if v is None else v
         self.x, self.y, self.yaw = x, y, yaw
-        self.w = v / self.car.wheel_radius     # friction-model wheel speed
+        self.w = v / self.r_eff                # friction-model wheel speed
         self.steer = 0.0                       # actual steering angle
         self.steer_servo = 0.0                 # rate-limited servo target (before the lag)
         self.throttle = 0.0                    # last commanded throttle and steering angle
@@ -54,7 +57,7 @@ class EgoEstimator:
 
     @property
     def v(self) -> float:
-        return self.w * self.car.wheel_radius
+        return self.w * self.r_eff
 
     def command(self, throttle: float, steering_angle: float) -> None:
         """The command just published (it drives the model from now on)."""
@@ -89,7 +92,7 @@ class EgoEstimator:
                  and 0 <= scan_stamp_ns - state.stamp_ns <= 5e8)
         if fresh:
             self.x, self.y, self.yaw = state.x, state.y, state.yaw
-            self.w = max(state.vx, 0.0) / self.car.wheel_radius
+            self.w = max(state.vx, 0.0) / self.r_eff
             # the state reports the servo's rate-limited angle; the wheels follow it with the
             # fitted lag, which the model keeps integrating
             self.steer_servo = state.steering_angle

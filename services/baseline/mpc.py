@@ -24,10 +24,10 @@ eliminated (single shooting: the model is linear, so states are affine in the in
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import os
 import subprocess
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -58,6 +58,43 @@ class MpcResult:
     """(N+1, 5) predicted states (linear model)."""
     flops: int = 0
     """Floating point operations of the solve (see :meth:`MpcApf.flops`)."""
+
+
+_COMPILE_LOCK = threading.Lock()
+
+
+def _compiled_library(solver, key: str) -> Path:
+    """The shared library of ``solver``'s derivative functions for problem ``key``: from the cache
+    (``$XDG_CACHE_HOME/racecav/mpc``), or generated and compiled now. A file lock makes other
+    processes wait for a compile in progress instead of starting their own; the compiler writes a
+    temporary file renamed in the same shell command, so a compile outliving its process (the
+    thread is a daemon) still completes the cache and never leaves a half-written library."""
+    import fcntl
+
+    import casadi as ca
+
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "racecav" / "mpc"
+    cache.mkdir(parents=True, exist_ok=True)
+    so = cache / f"mpc_{key}.so"
+    with _COMPILE_LOCK, open(cache / f"mpc_{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if so.is_file():
+            return so
+        src = cache / f"mpc_{key}.c"
+        cg = ca.CodeGenerator(src.name)
+        for n in ("nlp_jac_fg", "nlp_hess_l"):
+            cg.add(solver.get_function(n))
+        cwd = os.getcwd()
+        os.chdir(cache)  # the generator writes into the working directory
+        try:
+            cg.generate()
+        finally:
+            os.chdir(cwd)
+        tmp = so.with_suffix(f".{os.getpid()}.tmp")
+        cc = os.environ.get("CC", "cc")
+        subprocess.run(["sh", "-c", f'"{cc}" -O1 -fPIC -shared "{src}" -o "{tmp}" && mv "{tmp}" "{so}"'],
+                       check=True, capture_output=True, timeout=900)
+        return so
 
 
 def count_ops(fn) -> int:
@@ -91,6 +128,7 @@ class MpcApf:
         self.wheelbase = bic.lf + bic.lr if bic.fitted else car.wheelbase
         tau = bic.steer_tau
         self.steer_a = math.exp(-dt / tau) if tau > 0 else 0.0
+        self.r_eff = car.wheel_radius * (car.agent_speed_scale if cfg.speed_scale is None else cfg.speed_scale)
         self.ego_half_width = car.width / 2
         self.ego_charge = car.length / 2 - car.width / 4  # ego charges at +- this along its axis: near the corners
 
@@ -108,7 +146,8 @@ class MpcApf:
         P = ca.vertcat(z0, lin, lane, vref, uprev, obs, bnd)
         self.n_p = P.shape[0]
 
-        r = car.wheel_radius
+        # body speed = speed_scale * wheel_radius * w: the ego is the agent (car.agent_speed_scale)
+        r = self.r_eff
         g, cq, cl = car.throttle_gain, car.throttle_c_quad, car.throttle_c_lin
         J = 0
         G, self.g_lb, self.g_ub = [], [], []
@@ -201,6 +240,9 @@ class MpcApf:
         self.fn_ops = {name: count_ops(self.solver.get_function(name)) for name in self.solver.get_function()}
         self.compiled = False
         self.compile_error = ""
+        self.cache_key = hashlib.sha256(json.dumps(
+            [cfg.model_dump(mode="json"), car.model_dump(mode="json"), self.condensed, ca.__version__,
+             hashlib.sha256(Path(__file__).read_bytes()).hexdigest()], sort_keys=True).encode()).hexdigest()[:16]
         if cfg.compile and cfg.solver == "sqp":
             # compile in the background: the controller runs on casadi's virtual machine meanwhile
             threading.Thread(target=self._compile, name="mpc-compile", daemon=True).start()
@@ -208,33 +250,15 @@ class MpcApf:
 
     def _compile(self) -> None:
         """Generate C for the solver's derivative functions (Jacobian and Lagrangian Hessian: most
-        of its time), build them with the system C compiler into a cache keyed by the code's
-        hash (same problem, same library: compiled once per machine), and swap in a solver that
-        calls them. Same operations, same results; only faster."""
+        of its time), build them with the system C compiler into a cache keyed by the problem
+        (configuration, car, casadi and this file's version: compiled once per machine; one
+        compiler at a time per problem, across processes), and swap in a solver that calls them.
+        Same operations, same results; only faster."""
         import casadi as ca
 
         try:
-            fns = {n: self.solver.get_function(n) for n in ("nlp_jac_fg", "nlp_hess_l")}
-            cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "racecav" / "mpc"
-            cache.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory() as tmp:
-                cg = ca.CodeGenerator("mpc_nlp.c")
-                for f in fns.values():
-                    cg.add(f)
-                cwd = os.getcwd()
-                os.chdir(tmp)  # the generator writes into the working directory
-                try:
-                    cg.generate()
-                finally:
-                    os.chdir(cwd)
-                src = Path(tmp) / "mpc_nlp.c"
-                so = cache / f"mpc_{hashlib.sha256(src.read_bytes()).hexdigest()[:16]}.so"
-                if not so.is_file():
-                    part = so.with_suffix(f".{os.getpid()}.tmp")
-                    subprocess.run([os.environ.get("CC", "cc"), "-O1", "-fPIC", "-shared", str(src), "-o", str(part)],
-                                   check=True, capture_output=True, timeout=600)
-                    part.replace(so)  # atomic: concurrent processes never load a half-written file
-            ext = {n: ca.external(n, str(so)) for n in fns}
+            so = _compiled_library(self.solver, self.cache_key)
+            ext = {n: ca.external(n, str(so)) for n in ("nlp_jac_fg", "nlp_hess_l")}
             opts = dict(self._sqp_opts, jac_fg=ext["nlp_jac_fg"], hess_lag=ext["nlp_hess_l"])
             self.solver = ca.nlpsol("mpc", "sqpmethod", self.nlp, opts)
             self.compiled = True
@@ -268,7 +292,7 @@ class MpcApf:
         out = np.empty((N + 1, 5))
         out[0] = z0
         x, y, psi, v, d = (float(q) for q in z0)
-        r, car = self.car.wheel_radius, self.car
+        r, car = self.r_eff, self.car
         for k in range(N):
             T, dc = u[2 * k], u[2 * k + 1]
             x, y, psi, v, d = (x + dt * v * math.cos(psi), y + dt * v * math.sin(psi),

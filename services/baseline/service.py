@@ -61,7 +61,7 @@ class MpcApfController:
         from racecav.services.baseline.perception import Perception, PerceptionParams
 
         self.car, self.cfg = car, cfg
-        self.ego = EgoEstimator(car, cfg.ego_state, cfg.initial_speed, cfg.max_state_age_s)
+        self.ego = EgoEstimator(car, cfg.ego_state, cfg.initial_speed, cfg.max_state_age_s, cfg.speed_scale)
         self.perception = Perception(car, PerceptionParams(max_range=cfg.perception_range))
         self.mpc = MpcApf(car, cfg)
         self.last_stamp_ns: int | None = None
