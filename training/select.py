@@ -265,6 +265,7 @@ def ship(args, cfg) -> int:
     from stable_baselines3 import PPO
 
     from racecav.services.policy.model import MODELS_DIR, export_policy
+    from racecav.training.train import git_commit
 
     run_dir = args.run_dir
     settings = json.loads((run_dir / "config.json").read_text())
@@ -294,6 +295,7 @@ def ship(args, cfg) -> int:
     latest = json.loads((run_dir / "latest.json").read_text()) if (run_dir / "latest.json").is_file() else {}
     meta = {"name": args.name, "training_steps": n, "run": run_dir.name, "checkpoint": ck.name,
             "seed": settings["seed"], "settings": settings, "git_commit_training": settings.get("git_commit"),
+            "git_commit_export": git_commit(),
             "run_total_steps": latest.get("timesteps"), "run_wall_s": latest.get("wall_s"),
             "selection": evals.get(n), "observation": "sanitised lidar ranges (common/lidar.sanitize), 170, m",
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"}
@@ -475,14 +477,17 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
           "Success = no contact and ego progress >= the scenario's `min_progress_m`; randomised trials",
           f"(seeds {REPORT_SEED}..{REPORT_SEED}+N-1, different from the selection seeds). Paper (hardware, 10",
           "trials): DRL reversed 80/60/70 %, DRL default 80/30/70 %, MPC-APF 70/10/60 %.", "",
-          "| policy | shipped checkpoint | trials | " + " | ".join(SCENARIOS) + " | contacts |",
-          "|---|---|---|" + "---|" * len(SCENARIOS) + "---|"]
+          "The last two columns split the failures: contact, and no contact but short of the",
+          "minimum progress (the ego turned into the crossing road or stopped; see the path plots).", "",
+          "| policy | shipped checkpoint | trials | " + " | ".join(SCENARIOS) + " | contact | no contact, short |",
+          "|---|---|---|" + "---|" * len(SCENARIOS) + "---|---|"]
     for name, res in results.items():
         meta = json.loads((REPO / "services/policy/models" / f"{name}.json").read_text())
         succ = " | ".join(f"{100 * res[s]['success']:.0f} %" for s in SCENARIOS)
         cont = "/".join(f"{100 * res[s]['contact']:.0f}" for s in SCENARIOS)
+        short = "/".join(f"{100 * (1 - res[s]['success'] - res[s]['contact']):.0f}" for s in SCENARIOS)
         L.append(f"| {name} | {meta.get('run')} {meta.get('training_steps', 0) / 1e6:.2f} M | {res['trials']} | "
-                 f"{succ} | {cont} % |")
+                 f"{succ} | {cont} % | {short} % |")
     L += ["", f"Evaluation wall time of this report: {eval_s / 60:.1f} min.", ""]
     for name in results:
         if (REPO / "docs" / "img" / f"training_paths_{name}.png").is_file():
