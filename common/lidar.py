@@ -72,8 +72,11 @@ def sanitize(ranges, spec: LidarSpec | None = None) -> np.ndarray:
     """
     spec = spec or LidarSpec()
     r = np.asarray(ranges, dtype=np.float32)
-    r = np.where(np.isfinite(r), r, np.float32(spec.range_max))
-    return np.clip(r, spec.range_min, spec.range_max).astype(np.float32)
+    rmax = np.float32(spec.range_max)
+    # Two ufuncs instead of isfinite/where/clip/astype: this runs on every control step.
+    # NaN and +inf compare False -> range_max; -inf is excluded explicitly (non-finite).
+    out = np.where((r < rmax) & (r > -np.inf), r, rmax)
+    return np.maximum(out, np.float32(spec.range_min), out=out)
 
 
 def make_scan(ranges, stamp_ns: int, seq: int, source: str, spec: LidarSpec | None = None,
