@@ -4,8 +4,8 @@
   held-out seeds of its own training env (fast world: mean return, contact rate) and on the three
   intersection scenarios in-process on the PyBullet backend (success = no contact and ego
   progress >= the scenario's min_progress_m). Writes ``DIR/eval.csv`` and ``DIR/eval.png`` and
-  names the best: highest mean intersection success, ties broken by the held-out return (the
-  paper picked its checkpoints by evaluation too). Selection seeds (SELECT_SEED + k) differ from
+  names the best: highest mean intersection success, ties broken by fewer intersection contacts,
+  then by the held-out return (the paper picked its checkpoints by evaluation too). Selection seeds (SELECT_SEED + k) differ from
   the report's (REPORT_SEED + k), so the reported rates are not the ones the pick was made on.
 - ``ship --run-dir DIR --checkpoint best|latest|STEP --name racing|default|reversed``: writes
   services/policy/models/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
@@ -209,6 +209,8 @@ def select(args, cfg) -> int:
         rows.append(row)
         _write_csv(out, fields, rows)
         log.info("%s: %s", ck.name, {k: row[k] for k in fields[2:]})
+    seen = {int(r["timesteps"]) for r in rows}
+    rows += [r for n, r in done.items() if n not in seen]  # keep earlier evaluations
     rows.sort(key=lambda r: int(r["timesteps"]))
     _write_csv(out, fields, rows)
     best = pick_best(rows, not args.no_intersection)
@@ -219,9 +221,13 @@ def select(args, cfg) -> int:
 
 
 def pick_best(rows: list[dict], intersection: bool) -> dict:
-    """Highest mean intersection success, then highest held-out return (racing: return only)."""
+    """Highest mean intersection success, then fewest intersection contacts, then the highest
+    held-out return in the training env (racing: return only)."""
     def key(r):
-        return ((float(r["intersection_success"]) if intersection else 0.0), float(r["env_return"]))
+        if not intersection:
+            return (0.0, 0.0, float(r["env_return"]))
+        no_contact = sum(1 - float(r[f"{s}_contact"]) for s in SCENARIOS) / len(SCENARIOS)
+        return (round(float(r["intersection_success"]), 6), round(no_contact, 6), float(r["env_return"]))
     return max(rows, key=key)
 
 
