@@ -48,7 +48,7 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     eval_args = argparse.Namespace(
         scenario=args.scenario, controller=args.controller, trials=args.trials, seed=None, mode=args.mode,
         real_time_factor=1.0, json=None, jsonl=None, plot=None, plot_trials=min(args.trials, 3), resume=False,
-        out_dir=args.out_dir, no_progress=False)
+        out_dir=args.out_dir, no_progress=False, model=None)
     rc = run_single(eval_args, cfg, per_trial=True)
     if rc == 0:
         print("racecav demo: done; all processes stopped")

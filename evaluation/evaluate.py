@@ -18,6 +18,7 @@ never silently short.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import json
 import os
@@ -43,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controller", choices=CONTROLLER_NAMES,
                    help="drl-reversed | drl-default | drl-racing (racecav policy --model ...), mpc-apf "
                    "(racecav baseline), scripted (straight ahead at 1 m/s, no evasion: reference)")
+    p.add_argument("--model", type=Path, help="drl-* controllers: evaluate this policy .npz instead of the "
+                   "shipped weights (e.g. a checkpoint before shipping)")
     p.add_argument("--table", action="store_true",
                    help="every controller x the three intersection scenarios; writes docs/results.md")
     p.add_argument("--controllers", help="--table: comma-separated subset "
@@ -207,6 +210,9 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     if getattr(args, "config", None):  # the services the harness starts read the same file
         os.environ["RACECAV_CONFIG"] = str(Path(args.config).resolve())
     if args.table:
+        if getattr(args, "model", None) is not None:
+            print("racecav eval: --model is for single runs (--scenario/--controller), not --table", file=sys.stderr)
+            return 2
         from racecav.evaluation.table import run_table
 
         return _guarded(lambda: run_table(args, cfg))
@@ -252,6 +258,12 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
         print(f"racecav eval: {e}", file=sys.stderr)
         return 2
     ctrl = CONTROLLERS[args.controller]
+    if getattr(args, "model", None) is not None:
+        if ctrl.service != "policy":
+            print(f"racecav eval: --model applies to the drl-* controllers, not {ctrl.name}", file=sys.stderr)
+            return 2
+        model = args.model.resolve()
+        ctrl = dataclasses.replace(ctrl, args=("policy", "--model", str(model)), model=model)
     why = missing(ctrl)
     if why:
         print(f"racecav eval: cannot evaluate {ctrl.name}: {why}", file=sys.stderr)

@@ -141,19 +141,23 @@ def test_same_seed_same_trial_in_lockstep(tmp_path):
     assert a.compute_ms.median == pytest.approx(13.0)
 
 
-def test_policy_service_under_the_harness(tmp_path):
-    """The policy service with weights of the right shape (until the shipped ones exist)."""
+def test_policy_service_with_other_weights(tmp_path):
+    """`--model PATH` evaluates a policy file (weights of the right shape) through the policy service."""
+    import hashlib
+
     model = _random_policy(tmp_path / "rand.npz")
-    ctrl = Controller("drl-test", ("policy", "--model", str(model)), "policy",
-                      "racecav.services.policy.service", model)
-    if missing(ctrl):
-        pytest.skip(missing(ctrl))
-    with Harness(load_config(), ctrl, "lockstep", "head-to-head", tmp_path / "logs") as h:
-        h.set_scenario("head-to-head")
-        t = h.run_trial(0, 11)
-        st = h.controller_status()
+    out = tmp_path / "r.json"
+    r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "drl-default", "--model", str(model),
+              "--trials", "1", "--json", str(out))
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = validate_run(out)
+    t = res.trials[0]
+    assert res.controller.command == ["racecav", "policy", "--model", str(model.resolve())]
+    assert res.controller.weights_sha256 == hashlib.sha256(model.read_bytes()).hexdigest()
     assert t.commands >= t.steps - 1 and t.compute_ms.n == t.commands and 0 < t.compute_ms.median < 50
-    assert st.info.get("answered", st.published) >= t.steps - 1
+    assert res.controller_counters["answered"] >= t.steps - 1 and res.controller_counters["malformed"] == 0
+    r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "mpc-apf", "--model", str(model), "--trials", "1")
+    assert r.returncode == 2 and "--model applies to the drl-* controllers" in r.stderr
 
 
 @pytest.mark.parametrize("name", ["drl-reversed", "drl-default", "drl-racing", "mpc-apf"])
