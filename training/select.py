@@ -207,7 +207,9 @@ def select(args, cfg) -> int:
             row["intersection_success"] = sum(rates) / len(rates)
             row["trials"] = args.trials
         rows.append(row)
-        _write_csv(out, fields, rows)
+        seen = {int(r["timesteps"]) for r in rows}
+        _write_csv(out, fields, sorted(rows + [r for n, r in done.items() if n not in seen],
+                                       key=lambda r: int(r["timesteps"])))
         log.info("%s: %s", ck.name, {k: row[k] for k in fields[2:]})
     seen = {int(r["timesteps"]) for r in rows}
     rows += [r for n, r in done.items() if n not in seen]  # keep earlier evaluations
