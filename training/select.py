@@ -340,6 +340,7 @@ def report(args, cfg) -> int:
     from racecav.services.policy.model import MODELS_DIR, load_policy
 
     torch.set_num_threads(1)
+    args_reuse.v = args.reuse
     names = [n for n in args.policies.split(",") if (MODELS_DIR / f"{n}.npz").is_file()]
     results = {}
     t0 = time.time()
@@ -452,6 +453,10 @@ def _plot_curves() -> dict[str, dict]:
     return stats
 
 
+class args_reuse:  # set by report(): the page says whether results were reused
+    v = False
+
+
 def _markdown(results: dict, curves: dict, eval_s: float) -> str:
     L = ["# Training the racing, default and reversed-heading policies",
          "",
@@ -500,7 +505,8 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
         short = "/".join(f"{100 * (1 - res[s]['success'] - res[s]['contact']):.0f}" for s in SCENARIOS)
         L.append(f"| {name} | {meta.get('run')} {meta.get('training_steps', 0) / 1e6:.2f} M | {res['trials']} | "
                  f"{succ} | {cont} % | {short} % |")
-    L += ["", f"Evaluation wall time of this report: {eval_s / 60:.1f} min.", ""]
+    L += ["", f"Evaluation wall time of this report: {eval_s / 60:.1f} min"
+          + (" (results reused from the policies' metadata, measured at the time shown there)." if getattr(args_reuse, "v", False) else "."), ""]
     for name in results:
         if (REPO / "docs" / "img" / f"training_paths_{name}.png").is_file():
             L += [f"![{name} paths](img/training_paths_{name}.png)", ""]
