@@ -10,6 +10,7 @@ Targets (issue 2): one-way median <= 0.3 ms, p99 <= 1 ms; codec encode+decode <=
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import threading
@@ -129,7 +130,10 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
             ["status query round trip (through the router)", f"{query['median']:.0f}", f"{query['p99']:.0f}", ""],
             ["codec encode + decode of a Scan (in-process)", f"{codec['median']:.1f}", f"{codec['p99']:.1f}", "<= 20 median"]]
     md = table(rows, ["what", "median (us)", "p99 (us)", "target (us)"])
-    md += f"\n\n{args.samples} scans timed after {warmup} warm-up, {lost} lost; {args.queries} status queries at 100 Hz."
+    load = os.getloadavg()[0]
+    md += (f"\n\n{args.samples} scans timed after {warmup} warm-up, {lost} lost; {args.queries} status queries "
+           f"at 100 Hz. 1-minute load average {load:.1f} on {os.cpu_count()} cores at the end of the run.")
+    results["load_average"] = load
     print(md)
     dump_json(args.json, results)
     if not args.no_doc:
