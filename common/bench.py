@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import importlib
 import json
 import os
 import platform
@@ -64,17 +63,18 @@ def dump_json(path: str | None, data: dict) -> None:
         Path(path).write_text(json.dumps(data, indent=2))
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from racecav.cli import BENCHES
+def _common_options(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    q.add_argument("--no-doc", action="store_true", help="do not rewrite docs/benchmarks.md")
 
-    sub = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
-    for name, (module, help_) in BENCHES.items():
-        q = sub.add_parser(name, help=help_, description=help_)
-        q.add_argument("--json", metavar="PATH", help="also write the results as JSON")
-        q.add_argument("--no-doc", action="store_true", help="do not rewrite docs/benchmarks.md")
-        q.set_defaults(_bench_module=module)
-        importlib.import_module(module).add_arguments(q)
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from racecav.cli import BENCHES, add_table
+
+    add_table(p, "bench", BENCHES, extra=_common_options)
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    return int(importlib.import_module(args._bench_module).run(args, cfg) or 0)
+    from racecav.cli import BENCHES, run_table
+
+    return run_table(args, cfg, "bench", BENCHES)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import importlib
+
+from racecav.cli import add_table, run_table
 
 ACTIONS = {
     "install": ("racecav.deploy.install", "venv, systemd units, udev rules, default config, credentials"),
@@ -12,11 +13,8 @@ ACTIONS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
-    for name, (module, help_) in ACTIONS.items():
-        sp = sub.add_parser(name, help=help_, description=help_)
-        importlib.import_module(module).add_arguments(sp)
+    add_table(p, "action", ACTIONS)
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    return importlib.import_module(ACTIONS[args.action][0]).run(args, cfg)
+    return run_table(args, cfg, "action", ACTIONS)

@@ -35,6 +35,14 @@ def _outline(ax, x, y, yaw, length, width, color, ls="-"):
     ax.plot(c[:, 0], c[:, 1], color=color, lw=1.0, ls=ls)
 
 
+def _save(plt, fig, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
 def outcome(trial: Trial) -> str:
     if trial.success:
         return "success"
@@ -91,11 +99,7 @@ def plot_trajectories(panels: list[tuple[Trial, str]], walls: list[np.ndarray], 
         cb.set_label("time (s); ego green, obstacle red")
     if title:
         fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def plot_success_bars(rows: list[tuple[str, list[tuple[float | None, tuple[float, float] | None, float | None]]]],
@@ -127,8 +131,4 @@ def plot_success_bars(rows: list[tuple[str, list[tuple[float | None, tuple[float
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     if title:
         ax.set_title(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)

@@ -11,7 +11,8 @@ Each prints the path to open (a symlink to its pty) on its first line, e.g.::
 from __future__ import annotations
 
 import argparse
-import importlib
+
+from racecav.cli import add_table, run_table
 
 DEVICES = {
     "rplidar": ("racecav.services.sensor.emulator", "RPLIDAR S2 (info/health/conf, standard/express/dense scans, faults)"),
@@ -21,11 +22,8 @@ DEVICES = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="device", required=True, metavar="DEVICE")
-    for name, (module, help_) in DEVICES.items():
-        sp = sub.add_parser(name, help=help_, description=help_)
-        importlib.import_module(module).add_arguments(sp)
+    add_table(p, "device", DEVICES)
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    return importlib.import_module(DEVICES[args.device][0]).run(args, cfg)
+    return run_table(args, cfg, "device", DEVICES)
