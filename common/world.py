@@ -7,7 +7,9 @@ per segment, the fast backend casts rays at them.
 - ``kind = "loop"``: a closed lane given as a centerline of ``[[pieces]]`` from a start pose,
   each a straight (``straight = LENGTH``) or an arc (``arc_radius``, ``arc_deg``; positive =
   left turn). Walls are the exact offsets of the centerline by +-lane_width/2 (arcs subdivided
-  at ``arc_max_step_deg``). The centerline direction is the traffic direction.
+  at ``arc_max_step_deg``). The centerline direction is the traffic direction. A loop may cross
+  itself (figure eight): the walls inside the other part of the lane are cut, the crossing is
+  open.
 - ``kind = "roads"``: straight ``[[roads]]`` (centre, yaw, length, width); walls are the road
   edges minus the parts inside another road (curbs of a crossing). No centerline.
 Both accept extra ``[[walls]]`` segments (x0, y0, x1, y1). Units m, angles in files in degrees
@@ -199,12 +201,15 @@ def _loop_geometry(f: WorldFile) -> tuple[np.ndarray, np.ndarray]:
     x, y, h = f.start.x, f.start.y, math.radians(f.start.yaw_deg)
     half = f.lane_width / 2
     center: list[tuple[float, float]] = [(x, y)]
-    left: list[list[tuple[float, float]]] = [[]]
-    right: list[list[tuple[float, float]]] = [[]]
+    left: list[tuple[float, float]] = []
+    right: list[tuple[float, float]] = []
+    station: list[float] = []  # arc length of the centerline point each wall vertex belongs to
+    s_here = 0.0
 
     def edge(px: float, py: float, hh: float) -> None:
-        left[-1].append((px - half * math.sin(hh), py + half * math.cos(hh)))
-        right[-1].append((px + half * math.sin(hh), py - half * math.cos(hh)))
+        left.append((px - half * math.sin(hh), py + half * math.cos(hh)))
+        right.append((px + half * math.sin(hh), py - half * math.cos(hh)))
+        station.append(s_here)
 
     edge(x, y, h)
     for p in f.pieces:
@@ -213,6 +218,7 @@ def _loop_geometry(f: WorldFile) -> tuple[np.ndarray, np.ndarray]:
             for k in range(1, n_c + 1):
                 center.append((x + p.straight * k / n_c * math.cos(h), y + p.straight * k / n_c * math.sin(h)))
             x, y = center[-1]
+            s_here += p.straight
             edge(x, y, h)
         else:
             r, turn = p.arc_radius, math.radians(p.arc_deg)
@@ -227,7 +233,9 @@ def _loop_geometry(f: WorldFile) -> tuple[np.ndarray, np.ndarray]:
 
             for k in range(1, n_c + 1):
                 center.append(at(k / n_c)[:2])
+            s0 = s_here
             for k in range(1, n_w + 1):
+                s_here = s0 + r * abs(turn) * k / n_w
                 edge(*at(k / n_w))
             x, y, h = at(1.0)
     gap = math.hypot(x - f.start.x, y - f.start.y)
@@ -235,13 +243,66 @@ def _loop_geometry(f: WorldFile) -> tuple[np.ndarray, np.ndarray]:
     if gap > f.closure_tolerance or abs(dh) > 1e-6:
         raise ValueError(f"pieces: the loop does not close (end is {gap:.3f} m and "
                          f"{math.degrees(dh):.2f} deg from the start)")
-    segs = []
-    for side in (left[0], right[0]):
+    segs, seg_s = [], []
+    for side in (left, right):
         side[-1] = side[0]  # close exactly (the end matches the start within tolerance)
-        for a, b in zip(side[:-1], side[1:]):
+        for k, (a, b) in enumerate(zip(side[:-1], side[1:])):
             segs.append((*a, *b))
+            seg_s.append((station[k], station[k + 1]))
     cl = np.asarray(center[:-1], dtype=np.float64)
-    return np.asarray(segs, dtype=np.float64), cl
+    return _cut_crossings(np.asarray(segs, dtype=np.float64), np.asarray(seg_s), cl, half), cl
+
+
+CROSSING_CUT_STEP = 0.005
+"""m: resolution of the wall ends at a crossing of a self-crossing loop (figure eight)."""
+
+
+def _cut_crossings(segs: np.ndarray, seg_s: np.ndarray, cl: np.ndarray, half: float) -> np.ndarray:
+    """Remove the parts of the walls that lie inside another part of the lane (a loop crossing
+    itself, e.g. a figure eight: the crossing is open, like the roads of an intersection).
+
+    A wall point is inside another part of the lane when it is closer than ``half`` to a stretch
+    of the centerline more than a lane width away (along the loop) from the point's own station
+    (``seg_s``: the stations of each segment's ends). Tracks that do not cross themselves come
+    out unchanged.
+    """
+    pts = np.vstack([cl, cl[:1]])
+    a, d = pts[:-1], np.diff(pts, axis=0)
+    seg_len = np.linalg.norm(d, axis=1)
+    s_cl = np.concatenate([[0.0], np.cumsum(seg_len)])[:-1]
+    lap = float(seg_len.sum())
+
+    def nearest(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per point: distance to each centerline segment (Q, K) and that segment's station."""
+        t = np.clip(((q[:, None, :] - a[None]) * d[None]).sum(-1) / np.maximum(seg_len**2, 1e-12), 0, 1)
+        dist = np.linalg.norm(a[None] + d[None] * t[..., None] - q[:, None, :], axis=-1)
+        return dist, s_cl[None, :] + t * seg_len[None, :]
+
+    out = []
+    for (x0, y0, x1, y1), (sa, sb) in zip(segs, seg_s):
+        n = max(2, int(math.ceil(math.hypot(x1 - x0, y1 - y0) / CROSSING_CUT_STEP)) + 1)
+        u = np.linspace(0.0, 1.0, n)
+        q = np.stack([x0 + (x1 - x0) * u, y0 + (y1 - y0) * u], -1)
+        dist, s = nearest(q)
+        own = sa + (sb - sa) * u
+        gap = np.abs((s - own[:, None] + lap / 2) % lap - lap / 2)
+        inside = ((dist < half - 1e-6) & (gap > 2 * half)).any(1)
+        if not inside.any():
+            out.append((x0, y0, x1, y1))
+            continue
+        # keep the runs of outside points, ends snapped to the first/last outside sample
+        k = 0
+        while k < n:
+            if inside[k]:
+                k += 1
+                continue
+            j = k
+            while j + 1 < n and not inside[j + 1]:
+                j += 1
+            if j > k:
+                out.append((*q[k], *q[j]))
+            k = j + 1
+    return np.asarray(out, dtype=np.float64).reshape(-1, 4)
 
 
 def _road_walls(f: WorldFile) -> np.ndarray:

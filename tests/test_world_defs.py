@@ -77,6 +77,28 @@ def test_intersection_has_open_crossing():
         assert segment_distance([x], [y], w.walls)[0] >= w.lane_width / 2 - 1e-6
 
 
+def test_figure8_crossing_is_open_and_the_lane_closed_elsewhere():
+    w = load_world("figure8")
+    h = w.lane_width / 2
+    # the crossing square and both arms through it are free of walls
+    for x, y in [(0, 0), (0.6, 0), (0, -0.6), (3, 0), (-3, 0), (0, 3), (0, -3)]:
+        assert segment_distance([x], [y], w.walls)[0] >= h - 1e-3, (x, y)
+    assert segment_distance([0], [0], w.walls)[0] >= h * math.sqrt(2) - 0.01  # kerb corners
+    # the four kerbs end on the edges of the other arm, within the cut resolution
+    ends = w.walls.reshape(-1, 2).astype(np.float64)
+    kerb_ends = ends[(np.abs(ends[:, 0]) < h + 0.05) & (np.abs(ends[:, 1]) < h + 0.05)]
+    assert len(kerb_ends) == 8  # four wall lines, each cut once: two new ends each
+    assert np.allclose(np.abs(kerb_ends), h, atol=0.01)
+    # away from the crossing no wall comes closer to the centerline than half a lane
+    cl = w.centerline.astype(np.float64)
+    away = np.hypot(cl[:, 0], cl[:, 1]) > w.lane_width
+    d = segment_distance(cl[away, 0], cl[away, 1], w.walls)
+    assert d.min() > h - 0.05
+    # a track that does not cross itself is not cut: the racetrack's walls stay whole lines
+    rt = load_world("racetrack")
+    assert len(rt.walls) == 2 * (len(rt.walls) // 2)
+
+
 def test_broken_loop_is_rejected(tmp_path):
     from racecav.common.world import WORLDS_DIR
     text = (WORLDS_DIR / "racetrack.toml").read_text().replace("straight = 22.0", "straight = 21.0")

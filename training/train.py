@@ -83,7 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--driver", help="traffic driver: centerline | policy:PATH|NAME "
                                         "(overtake default: policy:racing)")
         p.add_argument("--time-limit", type=float, help="episode time limit (s)")
-        p.add_argument("--init-from", type=Path, help="start the weights from this SB3 zip")
+        p.add_argument("--world", help="training world (common/data/worlds; default racetrack)")
+        p.add_argument("--init-from", type=Path, help="start the weights (and, if a .vecnorm.pkl "
+                                                       "lies beside it, the normalisation) from this SB3 zip")
         p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
         p.set_defaults(stage=stage)
     from racecav.training import select  # cheap module: argument definitions only
@@ -113,7 +115,7 @@ def run_settings(args) -> dict:
              heading=args.heading if overtake else "default",
              n_obstacles=args.n_obstacles if args.n_obstacles is not None else (15 if overtake else 0),
              driver=args.driver or ("policy:racing" if overtake else "centerline"),
-             time_limit=args.time_limit, init_from=str(args.init_from) if args.init_from else None)
+             time_limit=args.time_limit, world=args.world or "racetrack", init_from=str(args.init_from) if args.init_from else None)
     return s
 
 
@@ -133,7 +135,7 @@ def make_venv(s: dict, seed: int, cfg=None):
 
     venv = FastVecEnv(n_envs=s["n_envs"], config=cfg.env if cfg is not None else None,
                       heading=s["heading"], n_obstacles=s["n_obstacles"], driver=s["driver"],
-                      time_limit=s["time_limit"], seed=seed)
+                      time_limit=s["time_limit"], world=s.get("world", "racetrack"), seed=seed)
     return VecMonitor(venv)
 
 
@@ -185,6 +187,11 @@ def train(args, cfg) -> int:
             venv.training = True
         else:
             venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=s["gamma"])
+            init_norm = Path(s["init_from"]).with_suffix(".vecnorm.pkl") if s.get("init_from") else None
+            if init_norm is not None and init_norm.is_file():
+                # the weights expect the statistics they were trained with: start from those
+                old = VecNormalize.load(str(init_norm), venv.venv)
+                venv.obs_rms, venv.ret_rms = old.obs_rms, old.ret_rms
     if args.resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         _truncate_csv(run_dir / "progress.csv", model.num_timesteps)

@@ -57,7 +57,6 @@ class CenterlineDriver:
         self.a_lat = a_lat
 
     def __call__(self, fw: "FastWorld") -> np.ndarray:
-        K.nearest_index(fw.x, fw.y, fw.cl, fw.cl_idx, 10, 40)
         K.pure_pursuit(fw.x, fw.y, fw.yaw, fw.v, fw.active, fw.cl_idx, fw.lane_offset, fw.vfac,
                        fw.cl, fw.cl_ds, fw.car.wheelbase, fw.car.steer_gain, fw.car.v_max,
                        self.a_lat, fw.car.width, 1, fw._traffic_act)
@@ -318,6 +317,9 @@ class FastWorld:
         self.time += self.control_period
         collided = self.wall_hit[:, 0] | (self.car_hit[:, 0] >= 0)
         respawned = self._respawn_obstacles(collided)
+        # every car's centerline station, by a local search (traffic, progress): a global
+        # nearest point would jump between the arms of a crossing (figure eight)
+        K.nearest_index(self.x, self.y, self.cl, self.cl_idx, 10, 40)
         self._scan_all(self.observe)
         a_d = np.clip(a[:, 1], -1.0, 1.0)
         info = {"wall": self.wall_hit[:, 0].copy(), "car": self.car_hit[:, 0].copy(),
