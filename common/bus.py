@@ -56,7 +56,8 @@ def zenoh_config(bus: BusConfig, mode: str | None = None, listen: list[str] | No
             conf.insert_json5("connect/endpoints", "[]")
     else:
         conf.insert_json5("connect/endpoints", json.dumps(bus.connect))
-        conf.insert_json5("listen/endpoints", "[]")
+        peer = (mode or bus.mode) == "peer"
+        conf.insert_json5("listen/endpoints", json.dumps(bus.listen if peer else []))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
     if bus.user is not None and mode != "router":
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(bus.user))

@@ -35,7 +35,12 @@ class BusConfig(Section):
     connect: list[str] = ["tcp/127.0.0.1:7447"]
     """Router endpoints a service connects to (explicit: multicast scouting is off)."""
     mode: Literal["client", "peer"] = "client"
-    """Services are clients of the car's router."""
+    """client: every message goes through the car's router. peer: services still meet at the
+    router, then connect to each other and exchange data directly (one hop less: see
+    docs/benchmarks.md, bus)."""
+    listen: list[str] = ["tcp/127.0.0.1:0"]
+    """Peer mode: where this process accepts its peers' links (port 0: any free port; the router
+    tells the others). Ignored in client mode."""
     multicast_scouting: bool = False
     """Off by default: unreliable in containers and CI, and a security hole on the car."""
     user: str | None = None

@@ -71,9 +71,9 @@ def wait_alive(session, car: str, service: str, timeout: float = 30.0, proc: sub
     raise TimeoutError(f"{service} not alive on car {car} after {timeout} s")
 
 
-@contextmanager
-def router(port: int | None = None, log_path=None) -> Iterator[str]:
-    """Run ``racecav router`` on a free loopback port; yields its endpoint."""
+def start_router(port: int | None = None, log_path=None) -> tuple[subprocess.Popen, str]:
+    """Start ``racecav router`` on a free loopback port and wait until it is on the bus;
+    returns the process and its endpoint (stop it with :func:`stop`)."""
     port = port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     env = bus_env(endpoint, extra={"RACECAV_ROUTER__LISTEN": f'["{endpoint}"]'})
@@ -96,6 +96,17 @@ def router(port: int | None = None, log_path=None) -> Iterator[str]:
 
         with open_session(load_config(environ={"RACECAV_BUS__CONNECT": f'["{endpoint}"]'})) as s:
             wait_alive(s, "car0", "router", timeout=20, proc=proc)
+    except BaseException:
+        stop(proc)
+        raise
+    return proc, endpoint
+
+
+@contextmanager
+def router(port: int | None = None, log_path=None) -> Iterator[str]:
+    """Run ``racecav router`` on a free loopback port; yields its endpoint."""
+    proc, endpoint = start_router(port, log_path)
+    try:
         yield endpoint
     finally:
         stop(proc)

@@ -11,10 +11,16 @@ Rules for a scan (counted in the status ``info``, never a command):
   or, for a ``source = "real"`` scan (stamped with this host's monotonic clock), its stamp is
   older than that -> ``stale``;
 - no scan: no command (the car's watchdog brakes).
+
+Where the answer is computed: a controller that answers in microseconds (the policy) answers in
+Zenoh's callback thread as the scan arrives (``answer_in_callback``), which saves the wake-up of
+the service loop; a slow one (the MPC, milliseconds) must not hold the callback thread, so it
+takes the newest scan from the loop and scans arriving meanwhile are dropped (counted).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -69,6 +75,9 @@ class ControllerService(Service):
     :param max_scan_age_s: staleness limit (see the module docstring).
     """
 
+    answer_in_callback = False
+    """True: answer each scan in the subscriber callback (only for answers of a few us)."""
+
     def __init__(self, cfg: Config, name: str, car: CarParams, max_scan_age_s: float):
         super().__init__(cfg, name)
         self.car_params = car
@@ -81,23 +90,31 @@ class ControllerService(Service):
         sensor and sim units swapped at runtime, ``racecav state`` shows which one feeds us."""
 
     def setup(self) -> None:
-        self.scans = self.inbox(self.topic(keys.SCAN), Scan)
         self.pub = self.publisher(self.topic(keys.CMD), command=True)
+        if self.answer_in_callback:
+            self._answer_lock = threading.Lock()  # zenoh may call back from several threads
+            self.subscribe(self.topic(keys.SCAN), Scan, self._on_scan)
+        else:
+            self.scans = self.inbox(self.topic(keys.SCAN), Scan)
+
+    def _on_scan(self, scan: Scan) -> None:
+        with self._answer_lock:
+            self.answer(scan, time.monotonic_ns())
 
     def act(self, scan: Scan) -> tuple[float, float] | None:
         """Normalised action (a_T, a_delta) for a valid, fresh scan; None = no command."""
         raise NotImplementedError
 
-    def check(self, scan: Scan) -> bool:
-        """True if ``scan`` may be answered; otherwise count why and return False."""
+    def check(self, scan: Scan, arrival_ns: int) -> bool:
+        """True if ``scan`` (arrived at monotonic ``arrival_ns``) may be answered; otherwise
+        count why and return False."""
         problem = scan_problem(scan, self.spec)
         if problem is not None:
             self.counts["malformed"] += 1
             self._record_error(f"malformed scan {scan.seq}: {problem}")
             return False
         now = time.monotonic_ns()
-        _, arrival = self.scans.latest()
-        age = now - arrival
+        age = now - arrival_ns
         if scan.source == "real":
             age = max(age, now - scan.stamp_ns)
         if age > self.max_age_ns:
@@ -107,10 +124,17 @@ class ControllerService(Service):
         return True
 
     def step(self) -> None:
+        if self.answer_in_callback:  # answers happen in the callback; the loop only idles
+            self.stop_event.wait(0.2)
+            return
         scan = self.scans.take(timeout=0.2)
         if scan is not None:
-            self.scan_source = scan.source
-        if scan is None or not self.check(scan):
+            self.answer(scan, self.scans.latest()[1])
+
+    def answer(self, scan: Scan, arrival_ns: int) -> None:
+        """Check a scan and publish its command (or count why not)."""
+        self.scan_source = scan.source
+        if not self.check(scan, arrival_ns):
             return
         t0 = time.perf_counter_ns()
         action = self.act(scan)

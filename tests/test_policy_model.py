@@ -116,7 +116,10 @@ def test_bad_files_name_the_problem(tmp_path):
 
 def test_numpy_path_imports_no_torch():
     code = ("import sys; from racecav.services.policy.model import load_policy; "
+            "from racecav.services.policy.fused import FusedPolicy; "
+            "from racecav.common.lidar import LidarSpec; "
             "p = load_policy('racing'); p(__import__('numpy').full(170, 5.0)); "
+            "FusedPolicy(p, LidarSpec())(__import__('numpy').full(170, 5.0)); "
             "print(sorted(m for m in ('torch', 'stable_baselines3') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
