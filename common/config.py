@@ -238,6 +238,52 @@ class PolicyConfig(Section):
     """Car file: steering limits of the physical steering angle in the command."""
 
 
+class PerceptionConfig(Section):
+    """The baseline's lidar perception: clustering, tracking, moving/static decision
+    (services/baseline/perception.py; defaults suit the 1/10 car and its lidar)."""
+
+    max_range: float = Field(6.0, gt=0)
+    """Returns farther than this (m) are ignored."""
+    gap_m: float = Field(0.12, gt=0)
+    """Constant part of the clustering distance threshold (m)."""
+    gap_k: float = Field(3.0, gt=0)
+    """Range-proportional part: this many ray spacings at the point's range."""
+    max_skip: int = Field(2, ge=0)
+    """Rays without return that may lie inside one cluster."""
+    max_obstacle_extent: float = Field(0.8, gt=0)
+    """Clusters longer than this (m, first to last point / bounding diagonal) are boundary."""
+    centre_offset: float = Field(0.1, gt=0)
+    """The lidar sees a car's near side: its centre lies this far (m) behind the visible points."""
+    boundary_spacing: float = Field(0.15, gt=0)
+    """Spacing (m) of the boundary points taken from long clusters."""
+    gate_m: float = Field(0.5, gt=0)
+    """Association gate (m) around a track's predicted position."""
+    alpha: float = Field(0.5, gt=0, le=1)
+    """Alpha-beta filter position gain."""
+    beta: float = Field(0.1, gt=0, le=1)
+    """Alpha-beta filter velocity gain."""
+    max_speed: float = Field(4.0, gt=0)
+    """Velocity estimates are clipped to this (m/s): association glitches must not fling tracks."""
+    confirm_hits: int = Field(3, gt=0)
+    moving_speed: float = Field(0.5, gt=0)
+    """m/s: a confirmed track at least this fast ..."""
+    dynamic_hits: int = Field(2, gt=0)
+    """... with at least this many detections standing where the previous scan saw free space
+    is a moving obstacle; everything else is static."""
+    free_margin: float = Field(0.1, ge=0)
+    """m: a point counts as previously free if the previous ray went this much farther."""
+    free_fraction: float = Field(0.1, gt=0, le=1)
+    """Fraction of a cluster's points previously free for a detection to count as dynamic."""
+    max_misses: int = Field(3, gt=0)
+    coast_s: float = Field(1.0, gt=0)
+    """s: a track that left the field of view is kept (predicted) this long."""
+    compact_weight: float = Field(1.0, gt=0)
+    """Factor on the boundary potential of compact static objects (a parked car, a corner). 1 =
+    like walls; 3 (more room) made the ego stall in front of a parked car and hit it in tests."""
+    memory_s: float = Field(1.5, gt=0)
+    """s: static points that left the field of view are remembered this long."""
+
+
 class BaselineConfig(Section):
     """The MPC-APF baseline controller (``racecav baseline``); design in docs/controllers.md."""
 
@@ -306,8 +352,8 @@ class BaselineConfig(Section):
     cheapest (the APF cost is non-convex; a single warm start finds only the nearest way)."""
     multi_start_range: float = Field(2.0, gt=0)
     """m: a moving obstacle, or a boundary point closer than this, triggers the multi-start."""
-    perception_range: float = Field(6.0, gt=0)
-    """Lidar returns farther than this (m) are ignored by the baseline's perception."""
+    perception: PerceptionConfig = PerceptionConfig()
+    """[baseline.perception] in TOML, RACECAV_BASELINE__PERCEPTION__<FIELD> in the environment."""
 
 
 class Config(Section):

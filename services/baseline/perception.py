@@ -1,7 +1,7 @@
 """The baseline's perception: obstacles and road boundary points from the same lidar scan the
 policy sees, in the odometry frame.
 
-1. Points: finite returns within ``perception_range`` -> car frame (the lidar mount pose of the
+1. Points: finite returns within ``max_range`` -> car frame (the lidar mount pose of the
    car file) -> odometry frame (the ego pose estimate at the scan's time).
 2. Clustering: consecutive rays belong together while neighbouring points are closer than
    ``gap_m + gap_k * range * angle_increment`` (range-adaptive; up to ``max_skip`` rays without
@@ -31,53 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from racecav.common.config import PerceptionConfig
 from racecav.common.vehicle import CarParams
-
-
-@dataclass
-class PerceptionParams:
-    """Tuning of the perception (defaults suit the 1/10 car and its lidar)."""
-
-    max_range: float = 6.0
-    """Returns farther than this (m) are ignored."""
-    gap_m: float = 0.12
-    """Constant part of the clustering distance threshold (m)."""
-    gap_k: float = 3.0
-    """Range-proportional part: this many ray spacings at the point's range."""
-    max_skip: int = 2
-    """Rays without return that may lie inside one cluster."""
-    max_obstacle_extent: float = 0.8
-    """Clusters longer than this (m, first to last point / bounding diagonal) are boundary."""
-    centre_offset: float = 0.1
-    """The lidar sees a car's near side: its centre lies this far (m) behind the visible points."""
-    boundary_spacing: float = 0.15
-    """Spacing (m) of the boundary points taken from long clusters."""
-    gate_m: float = 0.5
-    """Association gate (m) around a track's predicted position."""
-    alpha: float = 0.5
-    """Alpha-beta filter position gain."""
-    beta: float = 0.1
-    """Alpha-beta filter velocity gain."""
-    max_speed: float = 4.0
-    """Velocity estimates are clipped to this (m/s): association glitches must not fling tracks."""
-    confirm_hits: int = 3
-    moving_speed: float = 0.5
-    """m/s: a confirmed track at least this fast ..."""
-    dynamic_hits: int = 2
-    """... with at least this many detections standing where the previous scan saw free space
-    is a moving obstacle; everything else is static."""
-    free_margin: float = 0.1
-    """m: a point counts as previously free if the previous ray went this much farther."""
-    free_fraction: float = 0.1
-    """Fraction of a cluster's points previously free for a detection to count as dynamic."""
-    max_misses: int = 3
-    coast_s: float = 1.0
-    """s: a track that left the field of view is kept (predicted) this long."""
-    compact_weight: float = 1.0
-    """Factor on the boundary potential of compact static objects (a parked car, a corner). 1 =
-    like walls; 3 (more room) made the ego stall in front of a parked car and hit it in tests."""
-    memory_s: float = 1.5
-    """s: static points that left the field of view are remembered this long."""
 
 
 @dataclass
@@ -131,7 +86,7 @@ def scan_points(ranges: np.ndarray, angles: np.ndarray, car: CarParams, max_rang
 
 
 def cluster(points: np.ndarray, idx: np.ndarray, ranges: np.ndarray, angle_increment: float,
-            p: PerceptionParams) -> list[np.ndarray]:
+            p: PerceptionConfig) -> list[np.ndarray]:
     """Split consecutive returns into clusters; returns index arrays into ``points``."""
     if len(points) == 0:
         return []
@@ -157,8 +112,8 @@ class Perception:
     :param params: tuning.
     """
 
-    def __init__(self, car: CarParams, params: PerceptionParams | None = None):
-        self.car, self.p = car, params or PerceptionParams()
+    def __init__(self, car: CarParams, params: PerceptionConfig | None = None):
+        self.car, self.p = car, params or PerceptionConfig()
         spec = car.lidar
         self.angles = (spec.angle_min + spec.angle_increment * np.arange(spec.n_rays)).astype(np.float64)
         self.half_fov = spec.fov / 2

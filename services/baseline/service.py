@@ -58,11 +58,11 @@ class MpcApfController:
     def __init__(self, car: CarParams, cfg: BaselineConfig):
         from racecav.services.baseline.ego import EgoEstimator
         from racecav.services.baseline.mpc import MpcApf
-        from racecav.services.baseline.perception import Perception, PerceptionParams
+        from racecav.services.baseline.perception import Perception
 
         self.car, self.cfg = car, cfg
         self.ego = EgoEstimator(car, cfg.ego_state, cfg.initial_speed, cfg.max_state_age_s, cfg.speed_scale)
-        self.perception = Perception(car, PerceptionParams(max_range=cfg.perception_range))
+        self.perception = Perception(car, cfg.perception)
         self.mpc = MpcApf(car, cfg)
         self.last_stamp_ns: int | None = None
         self.last_wall = 0.0
@@ -115,7 +115,7 @@ class MpcApfController:
             src = [(o.x + o.speed * math.cos(o.yaw) * dt_truth, o.y + o.speed * math.sin(o.yaw) * dt_truth,
                     o.speed * math.cos(o.yaw), o.speed * math.sin(o.yaw), o.yaw, half) for o in truth.obstacles]
             src.sort(key=lambda o: math.hypot(o[0] - x, o[1] - y))
-            src = [o for o in src if math.hypot(o[0] - x, o[1] - y) < self.cfg.perception_range]
+            src = [o for o in src if math.hypot(o[0] - x, o[1] - y) < self.cfg.perception.max_range]
         else:
             src = []
             for tr in percept.obstacles:
