@@ -33,7 +33,8 @@ from racecav.common.config import Config
 OUT_DIR = Path("runs/eval")
 
 
-CONTROLLER_NAMES = ("drl-reversed", "drl-default", "drl-racing", "mpc-apf", "scripted")
+CONTROLLER_NAMES = ("drl-reversed", "drl-default", "drl-racing", "mpc-apf", "scripted", "full-throttle",
+                    "mpc-apf-fast")
 """= harness.CONTROLLERS' keys (a test checks), spelled here so that building the CLI parser does
 not import the harness."""
 
@@ -43,13 +44,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "or a scenario TOML file (schema: docs/world.md)")
     p.add_argument("--controller", choices=CONTROLLER_NAMES,
                    help="drl-reversed | drl-default | drl-racing (racecav policy --model ...), mpc-apf "
-                   "(racecav baseline), scripted (straight ahead at 1 m/s, no evasion: reference)")
+                   "(racecav baseline), mpc-apf-fast (the baseline at v_ref 2.7 m/s), scripted / full-throttle "
+                   "(straight ahead at 1 m/s / full throttle, no evasion: references)")
     p.add_argument("--model", type=Path, help="drl-* controllers: evaluate this policy .npz instead of the "
                    "shipped weights (e.g. a checkpoint before shipping)")
     p.add_argument("--table", action="store_true",
                    help="every controller x the three intersection scenarios; writes docs/results.md")
     p.add_argument("--controllers", help="--table: comma-separated subset "
-                   "(default: mpc-apf,drl-default,drl-reversed,scripted)")
+                   "(default: mpc-apf,drl-default,drl-reversed,scripted,full-throttle,mpc-apf-fast)")
     p.add_argument("--trials", type=int, help="trials per scenario (default 10; --table: 100)")
     p.add_argument("--seed", type=int, help="seed of trial 0 (trial i: seed + i); default: the scenario's seed")
     p.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",

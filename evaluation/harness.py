@@ -78,6 +78,14 @@ CONTROLLERS: dict[str, Controller] = {
     # tested before the controllers exist.
     "scripted": Controller("scripted", ("scripted", "--program", f"{_hold_speed_throttle(1.0):.4f},0.0,100000000"),
                            "scripted", "racecav.services.sim.scripted", None, "no evasion (straight 1 m/s, scripted)"),
+    # References for reading the table: the side scenarios are decided by who reaches the
+    # crossing first. Straight at full throttle (the agent's 2.7 m/s, about what the DRL
+    # policies drive at) clears it before the 1 m/s obstacle arrives; the baseline told to
+    # cruise at that speed shows the same (docs/results.md).
+    "full-throttle": Controller("full-throttle", ("scripted", "--program", "1.0,0.0,100000000"), "scripted",
+                                "racecav.services.sim.scripted", None, "no evasion (straight, full throttle, scripted)"),
+    "mpc-apf-fast": Controller("mpc-apf-fast", ("baseline", "--v-ref", "2.7"), "baseline",
+                               "racecav.services.baseline.service", None, "MPC-APF at v_ref 2.7 m/s (not in the paper)"),
 }
 TABLE_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed")
 

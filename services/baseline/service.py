@@ -41,6 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ego-state", choices=["auto", "state", "model"], help="default: baseline.ego_state")
     p.add_argument("--solver", choices=["sqp", "ipopt"], help="default: baseline.solver")
     p.add_argument("--max-scan-age", type=float, help="seconds (default: baseline.max_scan_age_s)")
+    p.add_argument("--v-ref", type=float, help="target speed, m/s (default: baseline.v_ref)")
 
 
 def _rot(yaw: float) -> np.ndarray:
@@ -193,7 +194,8 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     upd: dict[str, Any] = {}
     if getattr(args, "oracle", False):
         upd["obstacles"] = "oracle"
-    for name, field in (("ego_state", "ego_state"), ("solver", "solver"), ("max_scan_age", "max_scan_age_s")):
+    for name, field in (("ego_state", "ego_state"), ("solver", "solver"), ("max_scan_age", "max_scan_age_s"),
+                        ("v_ref", "v_ref")):
         v = getattr(args, name, None)
         if v is not None:
             upd[field] = v
