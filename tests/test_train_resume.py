@@ -107,3 +107,27 @@ def test_sigterm_checkpoints_and_resume_continues(tmp_path):
     assert curve == sorted(set(curve)) and curve[-1] == n + 2 * ROLLOUT
     assert curve[-2:] == [n + ROLLOUT, n + 2 * ROLLOUT]
     assert _adam_steps(run / "latest.zip") == (n // ROLLOUT + 2) * ADAM_STEPS_PER_UPDATE
+
+
+def test_init_from_carries_weights_and_normalisation(tmp_path):
+    """A new run started from another's checkpoint (--init-from, e.g. a new world) starts from
+    its weights and its observation statistics, not from fresh ones; --world is recorded."""
+    import numpy as np
+    from stable_baselines3 import PPO
+
+    src = tmp_path / "src"
+    assert _train(src, 256) == 0
+    ck = src / "checkpoints" / "step_000000256.zip"
+    dst = tmp_path / "dst"
+    assert _train(dst, 128, "--init-from", str(ck), "--world", "figure8") == 0
+    assert json.loads((dst / "config.json").read_text())["world"] == "figure8"
+    # statistics carried over: the count keeps growing from the source's 256 samples
+    src_count = _obs_count(ck.with_suffix(".vecnorm.pkl"))
+    assert src_count >= 256 and _obs_count(dst / "latest.vecnorm.pkl") >= src_count + 128
+    # weights carried over: one small update away from the source, far from a fresh init
+    a = PPO.load(ck, device="cpu").policy.state_dict()
+    b = PPO.load(dst / "latest.zip", device="cpu").policy.state_dict()
+    fresh = PPO.load(tmp_path / "src" / "checkpoints" / "step_000000256.zip", device="cpu")
+    fresh.policy.apply(lambda m: m.reset_parameters() if hasattr(m, "reset_parameters") else None)
+    k = "mlp_extractor.policy_net.0.weight"
+    assert np.abs((b[k] - a[k]).numpy()).max() < np.abs((fresh.policy.state_dict()[k] - a[k]).numpy()).max() / 5
