@@ -3,7 +3,8 @@
 Three processes, as on the car: a router, a publisher service sending a 170-ray Scan at 60 Hz
 (stamped with the system-wide monotonic clock just before ``put``), and this process receiving
 it as a service would (decode + validate in the callback). One-way latency = arrival - stamp.
-Then status-query latency against the publisher service, and the codec alone in-process.
+Then status-query latency against the publisher service; all of it once with both ends clients
+of the router (the default) and once in peer mode (direct link); and the codec alone in-process.
 Targets (issue 2): one-way median <= 0.3 ms, p99 <= 1 ms; codec encode+decode <= 20 us median.
 """
 
@@ -78,16 +79,17 @@ def publisher_main(rate: float, count: int) -> int:
     return 0
 
 
-def run(args: argparse.Namespace, cfg: Config) -> int:
+def _measure(cfg: Config, endpoint: str, mode: str, args, warmup: int) -> tuple[list[int], list[int]]:
+    """One publisher process and this process, both in bus ``mode``: one-way scan latencies
+    and status-query round trips (ns)."""
     import zenoh
 
     from racecav.common import procs
     from racecav.common.client import get_status, open_session
     from racecav.common.codec import decode
 
-    codec = bench_codec()
-    warmup = 60
     lat: list[int] = []
+    q: list[int] = []
     done = threading.Event()
 
     def on_sample(sample: zenoh.Sample) -> None:
@@ -98,40 +100,58 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
         if msg.seq == warmup + args.samples - 1:
             done.set()
 
-    with procs.router() as endpoint:
-        env = procs.bus_env(endpoint)
-        bus = cfg.bus.model_copy(update={"connect": [endpoint]})
-        with open_session(cfg.model_copy(update={"bus": bus})) as session:
-            sub = session.declare_subscriber(keys.topic(bus.car, keys.SCAN), on_sample)
-            pub_proc = subprocess.Popen([sys.executable, "-m", "racecav.common.bench_bus", "--publisher",
-                                         str(args.rate), str(warmup + args.samples)], env=env, start_new_session=True)
-            try:
-                procs.wait_alive(session, bus.car, "benchpub", proc=pub_proc)
-                total_s = (warmup + args.samples) / args.rate + 10
-                if not done.wait(total_s):
-                    print(f"warning: received {len(lat)} of {args.samples} timed scans", file=sys.stderr)
-                q = []
-                for _ in range(args.queries):
-                    t0 = time.perf_counter_ns()
-                    get_status(session, bus.car, "benchpub")
-                    q.append(time.perf_counter_ns() - t0)
-                    time.sleep(0.01)
-            finally:
-                sub.undeclare()
-                procs.stop(pub_proc)
+    env = procs.bus_env(endpoint, extra={"RACECAV_BUS__MODE": mode})
+    bus = cfg.bus.model_copy(update={"connect": [endpoint], "mode": mode})
+    with open_session(cfg.model_copy(update={"bus": bus})) as session:
+        sub = session.declare_subscriber(keys.topic(bus.car, keys.SCAN), on_sample)
+        pub_proc = subprocess.Popen([sys.executable, "-m", "racecav.common.bench_bus", "--publisher",
+                                     str(args.rate), str(warmup + args.samples)], env=env, start_new_session=True)
+        try:
+            procs.wait_alive(session, bus.car, "benchpub", proc=pub_proc)
+            total_s = (warmup + args.samples) / args.rate + 10
+            if not done.wait(total_s):
+                print(f"warning ({mode}): received {len(lat)} of {args.samples} timed scans", file=sys.stderr)
+            for _ in range(args.queries):
+                t0 = time.perf_counter_ns()
+                get_status(session, bus.car, "benchpub")
+                q.append(time.perf_counter_ns() - t0)
+                time.sleep(0.01)
+        finally:
+            sub.undeclare()
+            procs.stop(pub_proc)
+    return lat, q
 
-    one_way = summarize(lat, 1e-3)
-    query = summarize(q, 1e-3)
-    lost = args.samples - len(lat)
+
+def run(args: argparse.Namespace, cfg: Config) -> int:
+    from racecav.common import procs
+
+    codec = bench_codec()
+    warmup = 60
+    with procs.router() as endpoint:
+        lat, q = _measure(cfg, endpoint, "client", args, warmup)
+        lat_peer, q_peer = _measure(cfg, endpoint, "peer", args, warmup)
+
+    one_way, one_way_peer = summarize(lat, 1e-3), summarize(lat_peer, 1e-3)
+    query, query_peer = summarize(q, 1e-3), summarize(q_peer, 1e-3)
+    lost, lost_peer = args.samples - len(lat), args.samples - len(lat_peer)
     results = {"one_way_us": one_way, "status_query_us": query, "codec_us": codec,
+               "peer": {"one_way_us": one_way_peer, "status_query_us": query_peer, "scans_lost": lost_peer},
                "scans_sent": args.samples, "scans_lost": lost, "rate_hz": args.rate,
                "targets": {"one_way_median_us": 300, "one_way_p99_us": 1000, "codec_median_us": 20}}
-    rows = [["scan one-way, pub -> router -> sub (170 rays, %g Hz)" % args.rate, f"{one_way['median']:.0f}", f"{one_way['p99']:.0f}", "<= 300 / <= 1000"],
-            ["status query round trip (through the router)", f"{query['median']:.0f}", f"{query['p99']:.0f}", ""],
+
+    def row(what, d, target=""):
+        return [what, f"{d['median']:.0f}", f"{d['p99']:.0f}", target]
+
+    rows = [row("scan one-way, pub -> router -> sub (170 rays, %g Hz; client mode, the default)" % args.rate,
+                one_way, "<= 300 / <= 1000"),
+            row("scan one-way, pub -> sub over a direct link (peer mode)", one_way_peer, "<= 300 / <= 1000"),
+            row("status query round trip (client mode, through the router)", query),
+            row("status query round trip (peer mode)", query_peer),
             ["codec encode + decode of a Scan (in-process)", f"{codec['median']:.1f}", f"{codec['p99']:.1f}", "<= 20 median"]]
     md = table(rows, ["what", "median (us)", "p99 (us)", "target (us)"])
     load = os.getloadavg()[0]
-    md += (f"\n\n{args.samples} scans timed after {warmup} warm-up, {lost} lost; {args.queries} status queries "
+    md += (f"\n\n{args.samples} scans timed after {warmup} warm-up per mode, {lost} lost (client), {lost_peer} "
+           f"lost (peer); {args.queries} status queries "
            f"at 100 Hz. 1-minute load average {load:.1f} on {os.cpu_count()} cores at the end of the run.")
     results["load_average"] = load
     print(md)
