@@ -36,7 +36,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "lidar": ("racecav.services.sensor.bench", "RPLIDAR dense decoding and preprocessing cost, live driver CPU over a pty"),
     "vesc": ("racecav.services.actuator.bench", "DriveCommand-to-VESC latency and watchdog reaction, timed at the emulator"),
     "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
-    "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency through the router, status queries, codec"),
+    "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency (client and peer mode), status queries, codec"),
     "train": ("racecav.training.bench_train", "PPO samples/s: the paper's setting vs more envs per rollout, larger minibatches, fewer epochs"),
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
     "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
