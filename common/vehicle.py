@@ -57,6 +57,15 @@ class BicycleParams(_Frozen):
     """Speed loss in turns of the fast model: v = v_wheel * (1 - scrub * tan(delta)^2 - ...)."""
     scrub_lat: float = Field(0.0, ge=0)
     """... - scrub_lat * |lateral acceleration| (s^2/m): drag of slipping tyres."""
+    c_speed_inv: float = 0.0
+    """Cornering stiffnesses scale with 1 + c_speed_inv * (1 m/s / v - 1); 0 = constant, 1 = inversely
+    with speed."""
+    heading_c4: float = 0.0
+    """Heading-dependent grip: the tyres see delta * (1 + heading_c4 cos 4psi + heading_s4 sin 4psi),
+    psi the yaw (-yaw in right turns). PyBullet's grip depends on the heading relative to the
+    world axes (period 90 deg); 0 = isotropic."""
+    heading_s4: float = 0.0
+    """See heading_c4."""
 
 
 class CarParams(_Frozen):

@@ -13,7 +13,7 @@ from racecav.services.sim.fast_world import FastWorld
 from racecav.training.env import BulletBackend
 from racecav.training.fit_bicycle import (DESIGNED, bullet_rollouts, closed_loop,
                                           designed_actions, fast_rollouts, open_floor_scenario,
-                                          position_errors, random_actions)
+                                          position_errors, random_actions, transient_actions)
 
 T = 30  # 3 s of 0.1 s control periods
 
@@ -30,9 +30,8 @@ def floor(tmp_path_factory):
 
 def test_motion_parity_designed_sequences(floor):
     """Every designed sequence from rest and from 1.2 m/s, at the obstacle cars' and the agent's
-    speed scale (16 rollouts of 3 s): the issue's criterion is 10 cm after 3 s. Measured residual
-    (docs/training-env.md): 14 of 16 within 10 cm; a full-lock left-to-right reversal at the
-    agent's top speed is the worst case (~18 cm)."""
+    speed scale (16 rollouts of 3 s): the issue's criterion, every one within 10 cm after 3 s
+    (measured, docs/training-env.md: max ~6 cm, median ~2 cm)."""
     sc, world, car = floor
     combos = [(k, v0, s) for k in KINDS for v0 in (0.0, 1.2) for s in (1.0, car.agent_speed_scale)]
     acts = np.stack([_mixed(k) for k, _, _ in combos])
@@ -44,11 +43,10 @@ def test_motion_parity_designed_sequences(floor):
     report = dict(zip(combos, err.round(3)))
     travelled = np.hypot(*(ref[:, -1, :2] - ref[:, 0, :2]).T)
     assert np.all(travelled > 1.5)  # the sequences do move the car
-    assert np.median(err) < 0.05, report
-    assert np.mean(err < 0.10) >= 0.8, report
-    assert err.max() < 0.25, report
+    assert np.all(err < 0.10), report
+    assert np.median(err) < 0.04, report
     yaw_err = np.abs(np.angle(np.exp(1j * (got[:, -1, 2] - ref[:, -1, 2]))))
-    assert np.median(yaw_err) < 0.05 and yaw_err.max() < 0.15, yaw_err.round(3)
+    assert np.median(yaw_err) < 0.03 and yaw_err.max() < 0.06, yaw_err.round(3)
 
 
 def test_motion_parity_random_sequences(floor):
@@ -61,7 +59,23 @@ def test_motion_parity_random_sequences(floor):
     ref = bullet_rollouts(sc, car, acts, v0, scales)
     got = fast_rollouts(world, car, car.bicycle, acts, v0, scales)
     err = position_errors(got, ref)[:, -1]
-    assert np.median(err) < 0.06 and np.percentile(err, 90) < 0.12, err.round(3)
+    assert np.median(err) < 0.05 and np.percentile(err, 90) < 0.10, err.round(3)
+
+
+def test_motion_parity_random_headings(floor):
+    """PyBullet's grip depends on the heading (world-fixed friction directions): random and
+    transient actions from random start headings stay within the same error (the fast model's
+    heading term; the previous model, without it, had a p90 of ~16 cm here)."""
+    sc, world, car = floor
+    rng = np.random.default_rng(4321)
+    acts = np.concatenate([random_actions(rng, 8, T), transient_actions(rng, 8, T)])
+    v0 = rng.uniform(0.0, 2.0, 16)
+    scales = np.where(np.arange(16) % 2 == 0, 1.0, car.agent_speed_scale)
+    yaw0 = rng.uniform(-math.pi, math.pi, 16)
+    ref = bullet_rollouts(sc, car, acts, v0, scales, yaw0)
+    got = fast_rollouts(world, car, car.bicycle, acts, v0, scales, yaw0)
+    err = position_errors(got, ref)[:, -1]
+    assert np.median(err) < 0.05 and np.percentile(err, 90) < 0.10, err.round(3)
 
 
 def test_unfitted_model_is_worse(floor):

@@ -4,11 +4,25 @@
 ``python -m racecav.training.fit_bicycle --report`` (parity section of docs/training-env.md)
 
 Both backends start from the same state on an open floor (no walls within lidar range) and play
-the same random piecewise-constant action sequences (throttle and steering held 0.2-1.0 s, both
-speed scales: obstacle car 1.0 and racetrack agent ``agent_speed_scale``). Nelder-Mead adjusts
-the BicycleParams fields of the fast single-track model (see FIT) to minimise
-the mean squared position error over every step; ``--write`` stores the result in the car file's
-``[bicycle]`` section (with ``fitted = true``). The same helpers serve the parity tests.
+the same action sequences (see :func:`fit_dataset`: random piecewise-constant actions held
+0.2-1.0 s and randomised transient-rich manoeuvres, i.e. slaloms, full-lock reversals, coasting
+turns and bang-bang pulses; both speed scales: obstacle car 1.0 and racetrack agent
+``agent_speed_scale``; half of them from a random heading). Nelder-Mead adjusts the BicycleParams
+fields of the fast single-track model (see FIT) to minimise the mean squared position error over
+every step; ``--write`` stores the result in the car file's ``[bicycle]`` section (with
+``fitted = true``). The same helpers serve the parity tests.
+
+What the model reproduces of the PyBullet car (measured, see docs/training-env.md):
+
+- its steering joint (position control, PyBullet's default gain 0.1) moves 0.1 of the remaining
+  error per physics step, exactly a first-order lag of ``physics_dt / 0.1`` (0.25 s): not fitted;
+- its tyres' grip depends on the heading relative to the world axes (measured: a steady turn's
+  curvature breathes by +-15 % with a period of 90 deg of heading, and the same manoeuvre from
+  another heading turns differently; presumably the friction directions of PyBullet's contacts
+  with the ground plane are tied to the world axes): ``heading_c4``/``heading_s4``. A model
+  without it misses by 10-20 cm whenever a reversal falls at another phase;
+- its locked 4WD scrub: effective wheelbase ~0.39 m, speed loss in turns, cornering stiffnesses
+  that fall with speed (``c_speed_inv``).
 """
 
 from __future__ import annotations
@@ -62,17 +76,19 @@ def random_actions(rng: np.random.Generator, n_seq: int, n_steps: int) -> np.nda
 
 
 def bullet_rollouts(scenario, car: CarParams, actions: np.ndarray, v0: np.ndarray,
-                    scales: np.ndarray) -> np.ndarray:
-    """(S, T+1, 4) x, y, yaw, v of the PyBullet agent from (0, 0, 0, v0) under ``actions``."""
+                    scales: np.ndarray, yaw0: np.ndarray | None = None) -> np.ndarray:
+    """(S, T+1, 4) x, y, yaw, v of the PyBullet agent from (0, 0, yaw0 (default 0), v0) under
+    ``actions``."""
     from racecav.services.sim.bullet_world import BulletWorld
 
     S, T, _ = actions.shape
+    yaw0 = np.zeros(S) if yaw0 is None else yaw0
     out = np.zeros((S, T + 1, 4))
     with BulletWorld(scenario, car=car, seed=0) as bw:
         for s in range(S):
             bw.reset(seed=0)
             bw.cars[0].speed_scale = float(scales[s])  # agent speed scale (racetrack agent: 1.5)
-            bw.set_state(0.0, 0.0, 0.0, v=float(v0[s]))
+            bw.set_state(0.0, 0.0, float(yaw0[s]), v=float(v0[s]))
             out[s, 0] = bw.agent_state()[:4]
             for t in range(T):
                 bw.step(actions[s, t][None])
@@ -81,17 +97,18 @@ def bullet_rollouts(scenario, car: CarParams, actions: np.ndarray, v0: np.ndarra
 
 
 def fast_rollouts(world, car: CarParams, bicycle, actions: np.ndarray, v0: np.ndarray,
-                  scales: np.ndarray) -> np.ndarray:
+                  scales: np.ndarray, yaw0: np.ndarray | None = None) -> np.ndarray:
     """The same rollouts in the fast backend (all sequences as one batch)."""
     from racecav.services.sim.fast_world import FastWorld
 
     S, T, _ = actions.shape
+    yaw0 = np.zeros(S) if yaw0 is None else yaw0
     fw = FastWorld(n_envs=S, world=world, car=car, n_obstacles=0)
     fw.set_bicycle(bicycle)
     fw.reset(seed=0)
     fw.speed_scale[:, 0] = scales
     for s in range(S):
-        fw.set_state(s, 0, x=0.0, y=0.0, yaw=0.0, v=float(v0[s]),
+        fw.set_state(s, 0, x=0.0, y=0.0, yaw=float(yaw0[s]), v=float(v0[s]),
                      w=float(v0[s]) / (car.wheel_radius * scales[s]), delta=0.0)
     out = np.zeros((S, T + 1, 4))
     out[:, 0] = fw.agent_state
@@ -118,6 +135,44 @@ def designed_actions(kind: str, n_steps: int = 30, dt: float = 0.1) -> np.ndarra
     if kind == "pulses":
         return np.stack([(np.sin(4.0 * t) > 0).astype(float), 0.5 * np.sign(np.sin(1.0 * t + 0.3))], 1)
     raise ValueError(f"unknown designed sequence {kind!r} (known: {DESIGNED})")
+
+
+def transient_actions(rng: np.random.Generator, n_seq: int, n_steps: int, dt: float = 0.1) -> np.ndarray:
+    """(S, T, 2) randomised variants of the DESIGNED families (other amplitudes, frequencies,
+    phases and switch times; not the designed sequences themselves): sinusoidal slaloms with a
+    modulated throttle, (near) full-lock reversals at high throttle, coasting/braking phases with
+    turns, bang-bang throttle and steering pulses."""
+    t = np.arange(n_steps) * dt
+    out = np.zeros((n_seq, n_steps, 2))
+    u = rng.uniform
+    for i in range(n_seq):
+        kind = i % 4
+        if kind == 0:
+            thr = np.clip(u(0.3, 0.8) + u(0, 0.5) * np.sin(u(1, 4) * t + u(0, 6)), -0.2, 1.0)
+            out[i] = np.stack([thr, u(0.2, 1.2) * np.sin(u(0.8, 3) * t + u(0, 6))], 1)
+        elif kind == 1:
+            a = u(0.6, 1.2) * rng.choice([-1.0, 1.0])
+            out[i] = np.stack([np.full(n_steps, u(0.6, 1.0)), np.where(t < u(0.5, 2.5), a, -a * u(0.6, 1.0))], 1)
+        elif kind == 2:
+            t1, t2 = np.sort(u(0.3, 2.7, 2))
+            out[i] = np.stack([np.where(t < t1, 1.0, np.where(t < t2, u(-0.2, 0.3), u(0.5, 1.0))),
+                               np.where(t < t1, u(-0.3, 0.3), u(-1.2, 1.2))], 1)
+        else:
+            out[i] = np.stack([(np.sin(u(2, 6) * t + u(0, 6)) > u(-0.5, 0.5)).astype(float),
+                               u(0.3, 1.2) * np.sign(np.sin(u(0.7, 3) * t + u(0, 6)))], 1)
+    return out
+
+
+def fit_dataset(rng: np.random.Generator, n_seq: int, n_steps: int, car: CarParams):
+    """Actions, v0, speed scales and start headings of a fit set: half random held actions, half
+    :func:`transient_actions`; 30 % from rest; alternating speed scales; half of the sequences
+    from a random heading (PyBullet's grip depends on it), the others from yaw 0."""
+    h = n_seq // 2
+    acts = np.concatenate([random_actions(rng, h, n_steps), transient_actions(rng, n_seq - h, n_steps)])
+    v0 = np.where(rng.random(n_seq) < 0.3, 0.0, rng.uniform(0.3, 2.4, n_seq))
+    scales = np.where(np.arange(n_seq) % 2 == 0, 1.0, car.agent_speed_scale)
+    yaw0 = np.where(rng.random(n_seq) < 0.5, 0.0, rng.uniform(-math.pi, math.pi, n_seq))
+    return acts, v0, scales, yaw0
 
 
 def position_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -157,10 +212,21 @@ def nelder_mead(f, x0: np.ndarray, step: np.ndarray, iters: int = 300, tol: floa
 
 
 # fitted fields, their lower/upper bounds and Nelder-Mead initial steps (mu is fixed: only the
-# products mu * c_s enter the model)
-FIT = {"lf": (0.02, 1.0, 0.03), "lr": (0.0, 1.0, 0.03), "iz": (0.001, 1.0, 0.03),
-       "c_sf": (0.5, 50.0, 1.0), "c_sr": (0.5, 50.0, 1.0), "steer_tau": (0.0, 0.5, 0.03),
-       "speed_tau": (0.0, 1.0, 0.05), "scrub": (0.0, 5.0, 0.2), "scrub_lat": (0.0, 0.2, 0.01)}
+# products mu * c_s enter the model; steer_tau is PyBullet's, see steer_tau_of)
+FIT = {"lf": (0.02, 1.0, 0.03), "lr": (0.0, 1.0, 0.03), "iz": (0.001, 5.0, 0.1),
+       "c_sf": (0.5, 500.0, 5.0), "c_sr": (0.5, 500.0, 2.0), "speed_tau": (0.0, 1.0, 0.05),
+       "scrub": (0.0, 5.0, 0.2), "scrub_lat": (0.0, 0.2, 0.01), "c_speed_inv": (-0.4, 1.5, 0.1),
+       "heading_c4": (-0.5, 0.5, 0.05), "heading_s4": (-0.5, 0.5, 0.05)}
+
+BULLET_POSITION_GAIN = 0.1
+"""PyBullet's default positionGain of POSITION_CONTROL: the steering joint closes this fraction of
+its error per physics step (measured: the joint angle follows it to 1e-4 rad)."""
+
+
+def steer_tau_of(car: CarParams) -> float:
+    """The fast model's steering lag that reproduces PyBullet's steering joint exactly: the kernel
+    closes ``physics_dt / steer_tau`` of the error per substep."""
+    return car.physics_dt / BULLET_POSITION_GAIN
 
 
 def _params(x: np.ndarray, base: BicycleParams) -> BicycleParams:
@@ -175,24 +241,27 @@ def _dataset(rng: np.random.Generator, n_seq: int, n_steps: int, car: CarParams)
     return acts, v0, scales
 
 
-def fit(car: CarParams, n_seq: int = 64, n_steps: int = 30, seed: int = 0, iters: int = 600,
+def fit(car: CarParams, n_seq: int = 256, n_steps: int = 30, seed: int = 0, iters: int = 600,
         restarts: int = 4, log=print) -> tuple[BicycleParams, dict]:
     """Collect PyBullet rollouts and fit; returns the fitted parameters and error statistics.
 
-    Each start point is fitted on the training sequences; the result with the lowest error on
-    held-out sequences (same distribution, other seed) wins, and its held-out errors are reported.
+    Each start point is fitted on the training sequences (:func:`fit_dataset`); the result with
+    the lowest error on held-out sequences (same distribution, other seed) wins, and its held-out
+    errors are reported. The objective is the mean squared position error over every step: a
+    worst-case-weighted one (plus the mean of the largest 10 % final errors) was measured and gave
+    larger worst cases on the designed sequences (7.1 against 5.8 cm, on an earlier variant).
     """
     from racecav.common.world import load_world
 
-    train = _dataset(np.random.default_rng(seed), n_seq, n_steps, car)
-    held = _dataset(np.random.default_rng(seed + 1000), n_seq, n_steps, car)
+    train = fit_dataset(np.random.default_rng(seed), n_seq, n_steps, car)
+    held = fit_dataset(np.random.default_rng(seed + 1000), n_seq, n_steps, car)
     with tempfile.TemporaryDirectory() as tmp:
         sc = open_floor_scenario(tmp)
         world = load_world(sc.world)
         log(f"PyBullet: 2 x {n_seq} rollouts of {n_steps} steps ...")
         ref = bullet_rollouts(sc, car, *train)
         vref = bullet_rollouts(sc, car, *held)
-        base = car.bicycle
+        base = car.bicycle.model_copy(update={"steer_tau": steer_tau_of(car)})
 
         def errors(b, data, r):
             return position_errors(fast_rollouts(world, car, b, *data), r)
@@ -201,12 +270,12 @@ def fit(car: CarParams, n_seq: int = 64, n_steps: int = 30, seed: int = 0, iters
             return float(np.mean(errors(_params(x, base), train, ref) ** 2))
 
         x0 = np.array([getattr(base, k) for k in FIT])
-        # Start points: the current parameters, and a stiff-tyre (kinematic) guess with the
-        # effective wheelbase PyBullet's locked 4WD shows in steady circles (~0.40 m) and its
-        # steering joint lag (~0.27 s). Nelder-Mead gets stuck easily in 10 dimensions.
-        guess = base.model_copy(update={"lf": 0.2, "lr": 0.2, "iz": 0.01, "c_sf": 40.0, "c_sr": 40.0,
-                                        "steer_tau": 0.27, "speed_tau": 0.0, "scrub": 0.0,
-                                        "scrub_lat": 0.01})
+        # Start points: the current parameters, and a guess from what PyBullet's car shows: a
+        # steady-state effective wheelbase ~0.39 m with the no-slip point near the rear axle, a
+        # stiff front, a +-15 % heading term. Nelder-Mead gets stuck easily in 11 dimensions.
+        guess = base.model_copy(update={"lf": 0.32, "lr": 0.07, "iz": 1.0, "c_sf": 200.0, "c_sr": 30.0,
+                                        "speed_tau": 0.0, "scrub": 0.0, "scrub_lat": 0.015,
+                                        "c_speed_inv": 1.0, "heading_c4": 0.15, "heading_s4": -0.04})
         best, best_val = base, float(np.mean(errors(base, held, vref) ** 2))
         for start in (x0, np.array([getattr(guess, k) for k in FIT])):
             x = start
@@ -219,7 +288,7 @@ def fit(car: CarParams, n_seq: int = 64, n_steps: int = 30, seed: int = 0, iters
             if cval < best_val:
                 best, best_val = cand, cval
         fitted = best.model_copy(update={"fitted": True})
-        err0 = errors(base, train, ref)
+        err0 = errors(car.bicycle, train, ref)  # the car file's model before this fit
         err1 = errors(fitted, train, ref)
         errv = errors(fitted, held, vref)
     stats = {"rmse_before": float(np.sqrt(np.mean(err0 ** 2))), "rmse_after": float(np.sqrt(np.mean(err1 ** 2))),
@@ -323,6 +392,8 @@ def parity_report(car: CarParams, log=print) -> str:
         rnd = _dataset(np.random.default_rng(777), 32, 30, car)
         rref = bullet_rollouts(sc, car, *rnd)
         rerr = position_errors(fast_rollouts(world, car, car.bicycle, *rnd), rref)[:, -1]
+        mix = fit_dataset(np.random.default_rng(778), 64, 30, car)
+        herr = position_errors(fast_rollouts(world, car, car.bicycle, *mix), bullet_rollouts(sc, car, *mix))[:, -1]
     err = position_errors(got, ref)[:, -1]
     derr = position_errors(dflt, ref)[:, -1]
     yerr = np.abs(np.angle(np.exp(1j * (got[:, -1, 2] - ref[:, -1, 2]))))
@@ -343,7 +414,8 @@ def parity_report(car: CarParams, log=print) -> str:
         "Same initial state, same actions, 3 s (30 control periods), open floor. Speed scale 1.0 is an",
         f"obstacle car, {car.agent_speed_scale:g} the racetrack agent. Fitted model: lf {b.lf:.3f}, lr {b.lr:.3f}, "
         f"iz {b.iz:.3f}, c_sf {b.c_sf:.2f}, c_sr {b.c_sr:.2f}, steer_tau {b.steer_tau:.3f} s, "
-        f"speed_tau {b.speed_tau:.3f} s, scrub {b.scrub:.3f}, scrub_lat {b.scrub_lat:.4f}.",
+        f"speed_tau {b.speed_tau:.3f} s, scrub {b.scrub:.3f}, scrub_lat {b.scrub_lat:.4f}, "
+        f"c_speed_inv {b.c_speed_inv:.3f}, heading_c4 {b.heading_c4:.3f}, heading_s4 {b.heading_s4:.3f}.",
         "",
         "| sequence | v0 (m/s) | speed scale | PyBullet travelled (m) | position error (cm) | yaw error (rad) | unfitted defaults (cm) |",
         "|---|---|---|---|---|---|---|",
@@ -351,7 +423,10 @@ def parity_report(car: CarParams, log=print) -> str:
         "",
         f"Designed sequences: median {np.median(err) * 100:.1f} cm, {np.mean(err < 0.1) * 100:.0f} % within 10 cm, "
         f"max {err.max() * 100:.1f} cm. Random held actions (32 rollouts, not the fit's): median "
-        f"{np.median(rerr) * 100:.1f} cm, p90 {np.percentile(rerr, 90) * 100:.1f} cm, max {rerr.max() * 100:.1f} cm.",
+        f"{np.median(rerr) * 100:.1f} cm, p90 {np.percentile(rerr, 90) * 100:.1f} cm, max {rerr.max() * 100:.1f} cm. "
+        f"The fit's mix (64 rollouts, not the fit's: random held actions and randomised transients, half "
+        f"from a random heading): median {np.median(herr) * 100:.1f} cm, p90 {np.percentile(herr, 90) * 100:.1f} cm, "
+        f"max {herr.max() * 100:.1f} cm.",
         "",
         "Closed loop on the racetrack (no traffic): a scripted lidar gap follower (throttle 0.7, steer",
         "towards the widest far opening) drives each backend on its own scans from the same start:",
@@ -384,15 +459,17 @@ def write_bicycle(car_name: str, b: BicycleParams, stats: dict) -> Path:
     head = text[: j + 1] if j >= 0 else text[:i]
     lines = [
         "# --- Fitted single-track model for the fast backend (written by training/fit_bicycle.py) ---",
-        f"# Fit: {stats['sequences']} PyBullet rollouts of {stats['horizon_s']:.1f} s, random held actions;"
+        f"# Fit: {stats['sequences']} PyBullet rollouts of {stats['horizon_s']:.1f} s, random held actions"
+        " and transients;"
         f" position RMSE {stats['rmse_before']:.3f} -> {stats['rmse_after']:.3f} m,",
         f"# final error median {stats['final_err_median_after']:.3f} m, p90 {stats['final_err_p90_after']:.3f} m;"
         f" held-out sequences: median {stats['heldout_final_err_median']:.3f} m,"
         f" p90 {stats['heldout_final_err_p90']:.3f} m.",
         "# Single-track model (services/sim/fast_kernels.py integrate): CoG lf/lr from the axles of an",
         "# effective wheelbase lf + lr, yaw inertia iz, cornering stiffness coefficients c_sf/c_sr",
-        "# (mu fixed), steering and speed lags, speed loss in turns scrub * tan(delta)^2 +",
-        "# scrub_lat * |lateral acceleration|.",
+        "# (mu fixed) scaled by 1 + c_speed_inv (1/v - 1), steering lag (PyBullet's joint, not fitted) and",
+        "# speed lag, speed loss in turns scrub * tan(delta)^2 + scrub_lat * |lateral acceleration|, and",
+        "# PyBullet's heading-dependent grip (heading_c4, heading_s4: period 90 deg of yaw).",
         "[bicycle]",
     ]
     for name, val in b.model_dump().items():
@@ -404,7 +481,7 @@ def write_bicycle(car_name: str, b: BicycleParams, stats: dict) -> Path:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--car", default="slash")
-    ap.add_argument("--sequences", type=int, default=64)
+    ap.add_argument("--sequences", type=int, default=256)
     ap.add_argument("--steps", type=int, default=30, help="control steps per rollout (0.1 s each)")
     ap.add_argument("--iters", type=int, default=600, help="Nelder-Mead iterations per restart")
     ap.add_argument("--restarts", type=int, default=4)

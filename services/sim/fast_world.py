@@ -222,6 +222,9 @@ class FastWorld:
         self.steer_tau, self.speed_tau = float(b.steer_tau), float(b.speed_tau)
         self.scrub = float(getattr(b, "scrub", 0.0))
         self.scrub_lat = float(getattr(b, "scrub_lat", 0.0))
+        self.c_speed_inv = float(getattr(b, "c_speed_inv", 0.0))
+        self.heading_c4 = float(getattr(b, "heading_c4", 0.0))
+        self.heading_s4 = float(getattr(b, "heading_s4", 0.0))
 
     # ------------------------------------------------------------------ resets
     def seed(self, seed: int | None) -> None:
@@ -307,7 +310,8 @@ class FastWorld:
                         self.delta_cmd, self.w, self.speed_scale, self.active, car.wheel_radius,
                         car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
                         self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub,
-                        self.scrub_lat, V_KIN, self.dt)
+                        self.scrub_lat, V_KIN, self.dt, self.c_speed_inv, self.heading_c4,
+                        self.heading_s4)
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
                        self.corners, self.hx, self.hy, self.wall_r,
