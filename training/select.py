@@ -11,7 +11,7 @@
 - ``ship --run-dir DIR --checkpoint best|latest|STEP --name racing|default|reversed``: writes
   services/policy/models/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
   settings and evaluation to training/checkpoints/RUN/ (committed: the report and ``--resume``
-  across sessions need them).
+  across sessions need them); ``select`` saves that record too, for runs that are not shipped.
 - ``report``: >= 100 trials per scenario for each shipped policy, learning curves, throughput,
   wall time -> docs/training.md (+ docs/img/training_*.png); results also go into the policies'
   JSON metadata.
@@ -222,6 +222,7 @@ def select(args, cfg) -> int:
     best = pick_best(rows, not args.no_intersection)
     (run_dir / "best.json").write_text(json.dumps(best, indent=2, default=str) + "\n")
     _plot_eval(rows, run_dir / "eval.png", run_dir.name, not args.no_intersection)
+    save_run_record(run_dir)  # curves, evaluation and latest checkpoint: for the report and --resume
     print(f"best checkpoint of {run_dir}: {best['checkpoint']} ({_fmt_row(best)})")
     return 0
 
