@@ -431,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args:
         print("usage: python -m racecav.common.world OUT.png [WORLD ...]")
         return 2
-    names = args[1:] or ["racetrack", "intersection"]
+    names = args[1:] or ["racetrack", "figure8", "intersection"]
     fig, axes = plt.subplots(1, len(names), figsize=(7 * len(names), 5))
     from racecav.common.scenario import load_scenario, scenario_names
 
