@@ -180,3 +180,28 @@ def test_oracle_mode_uses_ground_truth(scenario_file):
     out, _ = drive(scenario_file(CROSSING, "crossing"), act)
     assert not out["collided"], out
     assert counts[0] == 1 and min(counts) == 1  # ground truth: always the one car, even hidden or still
+
+
+def test_solver_exception_is_a_failed_step_not_a_dead_controller():
+    """casadi can raise from a solve (seen: stats() after a failed sqpmethod iteration); the
+    step falls back to the previous plan, is reported as not ok, and the next step solves again."""
+    from racecav.services.baseline.mpc import MpcApf
+
+    cfg = load_config().baseline.model_copy(update={"compile": False})
+    mpc = MpcApf(load_car(), cfg)
+    z0 = np.array([0.0, 0.0, 0.0, 1.0, 0.0])
+    p = mpc.params(z0, (0.0, 0.0, 0.0), 1.0, [], np.zeros((0, 2)))
+    first = mpc.solve(p)
+    assert first.success and first.throttle > 0
+    real = mpc.solver
+
+    def broken(**kw):
+        raise RuntimeError("Error in Function::stats for 'mpc' [Sqpmethod]\nmore")
+
+    mpc.solver = broken
+    bad = mpc.solve(mpc.params(z0, (0.0, 0.0, 0.0), 1.0, [], np.zeros((0, 2))))
+    assert not bad.success and bad.status.startswith("exception: Error in Function::stats")
+    assert np.isfinite([bad.throttle, bad.steer_cmd]).all() and bad.x_pred.shape == (cfg.horizon + 1, 5)
+    mpc.solver = real
+    again = mpc.solve(mpc.params(z0, (0.0, 0.0, 0.0), 1.0, [], np.zeros((0, 2))))
+    assert again.success
