@@ -7,7 +7,7 @@ the same rules; the simulator or the car cannot tell which one runs (only ``sour
 Rules for a scan (counted in the status ``info``, never a command):
 - malformed: not the policy's lidar geometry (ray count, angle_min, angle_increment of the car's
   LidarSpec) -> ``malformed``; undecodable payloads are the bus's ``invalid``;
-- stale: it arrived more than ``max_scan_age_s`` ago (wall clock) by the time the loop takes it,
+- stale: it arrived more than ``max_scan_age_s`` ago (wall clock) by the time it is answered,
   or, for a ``source = "real"`` scan (stamped with this host's monotonic clock), its stamp is
   older than that -> ``stale``;
 - no scan: no command (the car's watchdog brakes).

@@ -6,8 +6,8 @@ training: :func:`racecav.common.lidar.sanitize` (no return / beyond range -> ran
 than range_min -> range_min), then the normalisation shipped with the weights (inside
 :class:`racecav.services.policy.model.NumpyPolicy`), then plain-numpy inference (no torch in the
 loop): all three run as one compiled kernel (:mod:`racecav.services.policy.fused`), held
-equal to the numpy reference by tests. Stale, malformed and missing scans get no command and are counted (see
-:mod:`racecav.services.controller`).
+equal to the numpy reference by tests. Stale, malformed and missing scans get no command and
+are counted (see :mod:`racecav.services.controller`).
 """
 
 from __future__ import annotations
