@@ -115,7 +115,8 @@ def run_settings(args) -> dict:
              heading=args.heading if overtake else "default",
              n_obstacles=args.n_obstacles if args.n_obstacles is not None else (15 if overtake else 0),
              driver=args.driver or ("policy:racing" if overtake else "centerline"),
-             time_limit=args.time_limit, world=args.world or "racetrack", init_from=str(args.init_from) if args.init_from else None)
+             time_limit=args.time_limit, world=args.world or "racetrack",
+             init_from=str(args.init_from) if args.init_from else None)
     return s
 
 

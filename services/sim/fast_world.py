@@ -222,9 +222,7 @@ class FastWorld:
         self.steer_tau, self.speed_tau = float(b.steer_tau), float(b.speed_tau)
         self.scrub = float(getattr(b, "scrub", 0.0))
         self.scrub_lat = float(getattr(b, "scrub_lat", 0.0))
-        self.c_speed_inv = float(getattr(b, "c_speed_inv", 0.0))
-        self.heading_c4 = float(getattr(b, "heading_c4", 0.0))
-        self.heading_s4 = float(getattr(b, "heading_s4", 0.0))
+        self.c_speed_inv, self.heading_c4, self.heading_s4 = b.c_speed_inv, b.heading_c4, b.heading_s4
 
     # ------------------------------------------------------------------ resets
     def seed(self, seed: int | None) -> None:
