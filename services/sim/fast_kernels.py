@@ -468,9 +468,9 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, w
                 continue
             delta[n, c] += (delta_cmd[n, c] - delta[n, c]) * ks
             d = delta[n, c]
-            c1 = math.cos(yaw[n, c])
-            s1 = math.sin(yaw[n, c])
-            if aniso:  # cos/sin of 4 yaw by double angles (no further trigonometric call)
+            if aniso:  # cos/sin of 4 yaw by double angles
+                c1 = math.cos(yaw[n, c])
+                s1 = math.sin(yaw[n, c])
                 c2 = c1 * c1 - s1 * s1
                 s2 = 2.0 * s1 * c1
                 s4 = math.copysign(2.0, d) * s2 * c2  # mirrored in right turns
@@ -512,15 +512,9 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, w
             # base_link velocity in the body frame: CoG velocity + r x offset
             vx = vm * math.cos(b)
             vy = vm * math.sin(b) + rr * ox
-            # heading at mid-substep, yaw + h: rotate (c1, s1) by the small angle h (series to
-            # h^5: within 2e-9 for |h| < 0.1, i.e. yaw rates below 8 rad/s): cos/sin of the yaw
-            # serve both the heading term and the position update
-            h = 0.5 * dt * rr
-            h2 = h * h
-            ch = 1.0 - h2 * (0.5 - h2 / 24.0)
-            sh = h * (1.0 - h2 * (1.0 / 6.0 - h2 / 120.0))
-            cm = c1 * ch - s1 * sh
-            sm = s1 * ch + c1 * sh
+            ym = yaw[n, c] + 0.5 * dt * rr  # heading at mid-substep
+            cm = math.cos(ym)
+            sm = math.sin(ym)
             x[n, c] += (vx * cm - vy * sm) * dt
             y[n, c] += (vx * sm + vy * cm) * dt
             yaw[n, c] += rr * dt
