@@ -8,6 +8,8 @@ matter of which publisher runs:
 | racecav/<car>/scan               | Scan           | sensor OR sim             | policy, baseline      |
 | racecav/<car>/cmd                | DriveCommand   | policy OR baseline        | actuator OR sim       |
 | racecav/<car>/teleop             | DriveCommand   | a joystick/teleop tool    | actuator (priority)   |
+| racecav/<car>/safety             | DriveCommand   | safety supervisor (brake) | actuator OR sim (mux) |
+| racecav/<car>/drive_ros          | DriveCommand   | ROS /drive bridge ("ros") | actuator OR sim (mux) |
 | racecav/<car>/estop              | any payload    | anyone ("clear" to clear) | actuator              |
 | racecav/<car>/state              | VehicleState   | sim (or odometry)         | baseline, eval        |
 | racecav/<car>/obstacles          | ObstacleStates | sim (ground truth)        | eval, baseline oracle |
@@ -22,6 +24,8 @@ PREFIX = "racecav"
 SCAN = "scan"
 CMD = "cmd"
 TELEOP = "teleop"
+SAFETY = "safety"  # brake input of the actuator from the safety supervisor (services/safety)
+DRIVE_ROS = "drive_ros"  # DriveCommand from ROS /drive (services/ros2), below teleop in the mux
 ESTOP = "estop"
 STATE = "state"
 OBSTACLES = "obstacles"
