@@ -141,17 +141,24 @@ class RplidarEmulator:
     :param reset_s: how long the device stays silent after RESET.
     :param garbage_every / corrupt_every / truncate_every: periodic faults every N scan units.
     :param modes: scan modes offered (GET_LIDAR_CONF), typical mode 1.
+    :param express_offset_max_q3: express capsules (82) carry a random angle offset per sample
+        in 0..this (q3 degrees, at most 63 = 7.875 deg; 0 = none), and the samples of the
+        first capsule after 0 deg at least 1 deg, so every turn has samples whose corrected
+        angle lies before the wrap (what cutting turns by the corrected angle got wrong).
     """
 
     def __init__(self, scene=None, link: str | Path | None = None, reset_s: float = 0.5,
                  garbage_every: int = 0, corrupt_every: int = 0, truncate_every: int = 0,
-                 seed: int = 0, modes: tuple[ScanMode, ...] = S2_MODES):
+                 seed: int = 0, modes: tuple[ScanMode, ...] = S2_MODES, express_offset_max_q3: int = 63):
         self.scene = scene or WallScene(default_walls())
         self.link = Path(link) if link else None
         self.reset_s = reset_s
         self.garbage_every, self.corrupt_every, self.truncate_every = garbage_every, corrupt_every, truncate_every
         self.rng = np.random.default_rng(seed)
         self.modes = modes
+        if not 0 <= express_offset_max_q3 <= 63:
+            raise ValueError(f"express_offset_max_q3 {express_offset_max_q3} outside 0..63 (6 bits)")
+        self.express_offset_max_q3 = express_offset_max_q3
         self.health = rp.Health(rp.HEALTH_OK, 0)
         self.rpm = 0
         self.default_rpm = 600
@@ -414,14 +421,25 @@ class RplidarEmulator:
             q1 = self._angle_q6(i0 + per_unit, spr)
             span = ((q1 - q0) % (360 * 64)) / 64.0
             angles = q0 / 64.0 + span * np.arange(per_unit) / per_unit
-            d = self.scene.ranges_mm(np.mod(angles, 360.0), rev)
             first = self._unit_index == 0
             if mode.answer_type == rp.ANS_DENSE:
+                d = self.scene.ranges_mm(np.mod(angles, 360.0), rev)
                 data = rp.encode_dense_capsule(q0 / 64.0, d, new_scan=first)
             else:
-                data = rp.encode_express_capsule(q0 / 64.0, d, new_scan=first)
+                off = self._express_offsets(i0 % spr < per_unit, per_unit)
+                # The sample taken at the raw angle a measured the direction a - offset (SDK).
+                d = self.scene.ranges_mm(np.mod(angles - off / 8.0, 360.0), rev)
+                data = rp.encode_express_capsule(q0 / 64.0, d, off, new_scan=first)
         self.units_sent += 1
         return self._apply_faults(data)
+
+    def _express_offsets(self, after_wrap: bool, n: int) -> np.ndarray:
+        """Random q3 angle offsets; at least 8 (1 deg) just after the wrap (see the class doc)."""
+        hi = self.express_offset_max_q3
+        if hi == 0:
+            return np.zeros(n, np.int64)
+        lo = min(8, hi) if after_wrap else 0
+        return self.rng.integers(lo, hi + 1, n)
 
     def _apply_faults(self, data: bytes) -> bytes:
         k = self.units_sent
@@ -455,12 +473,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truncate-every", type=int, default=0, help="truncate every Nth scan unit")
     p.add_argument("--unplug-every", type=float, default=0.0, help="simulate an unplug every S seconds")
     p.add_argument("--unplug-for", type=float, default=1.0, help="how long an unplug lasts (s)")
+    p.add_argument("--express", action="store_true", help="also offer an Express mode (82, mode 2; not an S2 mode)")
+    p.add_argument("--express-offset-max", type=int, default=63,
+                   help="largest random express angle offset, q3 degrees 0..63 (0 = none)")
 
 
 def run(args: argparse.Namespace, cfg=None) -> int:
     scene = ReplayScene(args.replay) if args.replay else None
     emu = RplidarEmulator(scene, link=args.link, reset_s=args.reset_s, garbage_every=args.garbage_every,
-                          corrupt_every=args.corrupt_every, truncate_every=args.truncate_every).start()
+                          corrupt_every=args.corrupt_every, truncate_every=args.truncate_every,
+                          modes=S2_MODES + ((EXPRESS_MODE,) if args.express else ()),
+                          express_offset_max_q3=args.express_offset_max).start()
     print(emu.path, flush=True)
     print(emu.slave_name, file=sys.stderr, flush=True)
     stop = threading.Event()

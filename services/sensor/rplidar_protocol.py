@@ -346,13 +346,24 @@ def express_samples(cap: bytes | bytearray | memoryview) -> tuple[np.ndarray, np
 class Samples:
     """A batch of decoded measurements, in arrival order.
 
-    ``start`` marks the first sample of a new revolution (the angle wrapped past 0 deg, or the
-    device's S flag in standard mode).
+    ``angle_deg`` is where each sample was measured. ``raw_deg`` is the sweep angle it was taken
+    at: the capsule's interpolated angle before the express angle offset is subtracted (equal to
+    ``angle_deg`` for standard and dense data). The raw angle rises monotonically through a turn,
+    the corrected one does not (an offset of up to 7.9 deg can put a sample taken just after
+    0 deg before it), so turns are found from the raw angle, as the Slamtec SDK does.
+
+    ``start`` marks the first sample of a new revolution (the raw angle wrapped past 0 deg, or
+    the device's S flag in standard mode).
     """
 
     angle_deg: np.ndarray
     dist_mm: np.ndarray
     start: np.ndarray
+    raw_deg: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.raw_deg is None:
+            self.raw_deg = self.angle_deg
 
     @classmethod
     def empty(cls) -> "Samples":
@@ -407,7 +418,7 @@ class ScanStream:
             raise ProtocolError(f"scan answer type {self.answer_type:#x} not supported")
         self.buf = bytearray()
         self._prev: bytes | None = None  # last capsule, waiting for its successor
-        self._last_angle: float | None = None  # of the last emitted sample (wrap detection)
+        self._last_raw: float | None = None  # raw angle of the last emitted sample (wrap detection)
         self._gap = False  # bytes were skipped since the last good capsule
         self._span = 0.0  # running estimate of the angle between consecutive capsules
 
@@ -415,7 +426,7 @@ class ScanStream:
         """Forget partial data (after a restart of the scan)."""
         self.buf.clear()
         self._prev = None
-        self._last_angle = None
+        self._last_raw = None
         self._gap = False
         self._span = 0.0
 
@@ -456,6 +467,7 @@ class ScanStream:
     def _feed_capsules(self) -> Samples:
         angles: list[np.ndarray] = []
         dists: list[np.ndarray] = []
+        raws: list[np.ndarray] = []
         buf = self.buf
         i = 0
         end = len(buf)
@@ -478,15 +490,18 @@ class ScanStream:
             if out is not None:
                 angles.append(out[0])
                 dists.append(out[1])
+                raws.append(out[2])
         del buf[:i]
         if not angles:
             return Samples.empty()
         a = np.concatenate(angles)
         d = np.concatenate(dists)
+        raw = np.concatenate(raws)
         self.stats.samples += len(a)
-        return Samples(a, d, self._wraps(a))
+        return Samples(a, d, self._wraps(raw), raw)
 
-    def _pair(self, cap: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+    def _pair(self, cap: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Decode the previous capsule now that ``cap`` follows it: (angle, dist, raw angle)."""
         start, new_scan = capsule_start(cap)
         prev, self._prev = self._prev, cap
         gap, self._gap = self._gap, False
@@ -497,7 +512,7 @@ class ScanStream:
             return None
         if new_scan:
             # First capsule of a (re)started scan: whatever came before belongs to another scan.
-            self._last_angle = None
+            self._last_raw = None
             return None
         if prev is None:
             return None
@@ -511,20 +526,29 @@ class ScanStream:
         if self.answer_type == ANS_DENSE:
             n = DENSE_SAMPLES
             dist = dense_distances(prev)
-            angle = prev_start + span * np.arange(n) / n
+            raw = prev_start + span * np.arange(n) / n
+            angle = raw
         else:
             n = EXPRESS_SAMPLES
             dist, off = express_samples(prev)
-            angle = prev_start + span * np.arange(n) / n - off
-        return np.mod(angle, 360.0), dist
+            raw = prev_start + span * np.arange(n) / n
+            angle = raw - off  # the SDK: angle = raw - offset (q3 degrees)
+        raw = np.mod(raw, 360.0)
+        return (raw if angle is raw else np.mod(angle, 360.0)), dist, raw
 
-    def _wraps(self, a: np.ndarray) -> np.ndarray:
-        """Mark samples whose angle went backwards by more than half a turn: a new revolution."""
-        prev = np.empty_like(a)
-        prev[0] = a[0] if self._last_angle is None else self._last_angle
-        prev[1:] = a[:-1]
-        self._last_angle = float(a[-1])
-        return (prev - a) > 180.0
+    def _wraps(self, raw: np.ndarray) -> np.ndarray:
+        """Mark samples whose raw angle went backwards by more than half a turn: a new revolution.
+
+        The raw angle (before the express offset) rises evenly through a turn, so this fires
+        exactly once per turn. The SDK's test, ``(raw_i + inc) % 360 < inc``, flags the sample
+        just before the wrap; racecav flags the first sample after it (one sample later), which
+        is the first sample of the new turn.
+        """
+        prev = np.empty_like(raw)
+        prev[0] = raw[0] if self._last_raw is None else self._last_raw
+        prev[1:] = raw[:-1]
+        self._last_raw = float(raw[-1])
+        return (prev - raw) > 180.0
 
 
 @dataclass
@@ -538,12 +562,18 @@ class Revolution:
 
 
 class RevolutionAssembler:
-    """Cut a stream of samples into revolutions where the angle passes ``cut_deg``.
+    """Cut a stream of samples into revolutions where the sweep passes ``cut_deg``.
 
     The cut is a device angle chosen by the user of the revolutions: cutting just after the
     sector of interest makes that sector contiguous and publishes it as soon as it is complete
     (the device's own 0 deg would split a frontal sector between two turns). The partial turn
     before the first cut is discarded.
+
+    The cut is decided on the raw sweep angle (:attr:`Samples.raw_deg`, before the express
+    offset), which rises monotonically, so a turn is cut exactly once and no sample is lost (the
+    corrected angles of express samples go back and forth by up to 7.9 deg around the cut). As a
+    second guard (standard-mode nodes carry measured angles that can jitter), a cut re-arms only
+    once the sweep has been seen between 90 and 270 deg past the cut.
 
     :param cut_deg: device angle (deg) where a revolution starts.
     :param min_samples: revolutions with fewer samples (e.g. cut short by an error) are dropped
@@ -557,24 +587,30 @@ class RevolutionAssembler:
         self._d: list[np.ndarray] = []
         self._last: float | None = None
         self._started = False
+        self._armed = True
         self.short = 0
 
     def reset(self) -> None:
         self._a, self._d = [], []
         self._last = None
         self._started = False
+        self._armed = True
 
     def add(self, s: Samples, t: float = 0.0) -> list[Revolution]:
         if len(s.angle_deg) == 0:
             return []
-        rel = np.mod(s.angle_deg - self.cut, 360.0)
+        rel = np.mod(s.raw_deg - self.cut, 360.0)
         prev = np.empty_like(rel)
         prev[0] = rel[0] if self._last is None else self._last
         prev[1:] = rel[:-1]
         self._last = float(rel[-1])
+        mid = (rel >= 90.0) & (rel <= 270.0)  # half a turn away from the cut: re-arms it
         out: list[Revolution] = []
         lo = 0
         for c in np.flatnonzero(prev - rel > 180.0):
+            if not (self._armed or mid[lo:c].any()):
+                continue  # the sweep stepped back across the cut: still the same turn
+            self._armed = False
             if self._started:
                 self._a.append(s.angle_deg[lo:c])
                 self._d.append(s.dist_mm[lo:c])
@@ -586,6 +622,7 @@ class RevolutionAssembler:
             self._a, self._d = [], []
             self._started = True
             lo = c
+        self._armed = self._armed or bool(mid[lo:].any())
         if self._started:
             self._a.append(s.angle_deg[lo:])
             self._d.append(s.dist_mm[lo:])
