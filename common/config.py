@@ -124,6 +124,15 @@ class ActuatorConfig(Section):
     episodes in 2 s of driving). Set 0.1 for a controller running faster than 10 Hz."""
     teleop_hold_s: float = Field(0.5, ge=0)
     """After a teleop command, controller commands are ignored for this long (priority mux)."""
+    safety_source: str = Field("safety", min_length=1)
+    """Source accepted on the safety key: the supervisor's brake, above teleop (services/safety)."""
+    safety_timeout_s: float = Field(0.2, gt=0)
+    """A safety brake holds this long after the supervisor's last brake message (it publishes one
+    per scan while braking, ~10 Hz): releasing is stopping to publish."""
+    ros_source: str = Field("ros", min_length=1)
+    """Source accepted on the drive_ros key (ROS 2 /drive), between teleop and the controller."""
+    ros_timeout_s: float = Field(0.25, gt=0)
+    """Timeout of the ROS drive input (ackermann_mux uses 0.2 s)."""
     rate_hz: float = Field(50.0, gt=0)
     """Period at which the current command (or neutral) is re-sent; the VESC drops a motor
     that hears nothing for its app timeout."""

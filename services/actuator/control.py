@@ -9,11 +9,22 @@ Mapping (f1tenth convention, XTENTH calibration by default):
   (speed_mode "rpm"); or duty = T * duty_max; or current = T * current_max_a.
 - steering angle delta (rad, + left) -> servo = gain * delta + offset, clipped to the servo limits.
 
-Safety, in priority order: a latched e-stop; then a fresh teleop command (it overrides, and
-holds the controller off for teleop_hold_s); then a fresh command from the configured
-controller; otherwise neutral (brake/zero/coast per config) with the steering centred. "Fresh" is
-younger than timeout_s since it arrived; a malformed command on either key discards the command
-in force at once. Commands from any other source are refused and counted.
+The mux (ackermann_mux style, one explicit order; :data:`PRIORITY`), highest first:
+
+1. e-stop latch (key ``estop``): any payload latches, exactly ``clear`` clears; neutral.
+2. safety brake (key ``safety``, source ``safety``): the supervisor's brake request (motor
+   brake, its steering angle, normally centred); services/safety publishes one per scan while
+   it brakes and stops publishing to release, so the brake ends ``safety_timeout_s`` later.
+3. teleop (key ``teleop``, source ``teleop``): overrides, and holds the inputs below it off for
+   ``teleop_hold_s`` after its last command.
+4. ROS drive (key ``drive_ros``, source ``ros``): /drive from ROS 2.
+5. controller (key ``cmd``, source = the configured controller: policy, baseline, ...).
+Otherwise neutral (brake/zero/coast per config) with the steering centred.
+
+Each input is fresh while younger than its own timeout since it arrived (:class:`MuxInput`); a
+malformed payload on an input discards that input's command at once; a command from another
+source than the input's is refused and counted. The simulator runs this same class (sim time
+in lockstep), so the sim and the car arbitrate identically.
 """
 
 from __future__ import annotations
@@ -22,6 +33,7 @@ import math
 import threading
 from dataclasses import dataclass
 
+from racecav.common import keys
 from racecav.common.config import ActuatorConfig
 from racecav.common.messages import DriveCommand
 from racecav.services.actuator import vesc_protocol as vp
@@ -71,6 +83,19 @@ class Mapping:
     def drive_frames(self, cmd: DriveCommand) -> list[bytes]:
         return [self.motor_frame(cmd.throttle), vp.set_servo_pos(self.servo(cmd.steering_angle))]
 
+    def brake_frames(self, steering_angle: float = 0.0) -> list[bytes]:
+        """The safety supervisor's brake: motor brake current (whatever ``neutral`` says: a
+        requested brake must brake) and the steering angle given."""
+        return [vp.set_current_brake(self.cfg.brake_current_a), vp.set_servo_pos(self.servo(steering_angle))]
+
+    def decision_frames(self, d: "Decision") -> list[bytes]:
+        """Frames for a mux decision: drive, safety brake, or neutral."""
+        if d.cmd is None:
+            return self.neutral_frames()
+        if d.reason == "safety":
+            return self.brake_frames(d.cmd.steering_angle)
+        return self.drive_frames(d.cmd)
+
     def neutral_frames(self) -> list[bytes]:
         """Motor stopped per ``neutral`` and steering centred (servo at the calibrated offset)."""
         n = self.cfg.neutral
@@ -85,55 +110,110 @@ class Decision:
     cmd: DriveCommand | None
     """The command to apply, or None for neutral."""
     reason: str
-    """Who drives ("controller", "teleop") or why neutral ("estop", "timeout", "malformed", "no command")."""
+    """Who drives ("safety", "teleop", "ros", "controller") or why neutral ("estop", "teleop
+    hold", "timeout", "malformed", "no command")."""
     deadline: float
-    """Monotonic time at which this decision expires (the watchdog's next wake-up)."""
+    """Time at which this decision expires (the watchdog's next wake-up)."""
+    since: float = -math.inf
+    """Arrival time of the winning command (-inf for neutral)."""
+
+    @property
+    def brake(self) -> bool:
+        """True when the motor must brake: neutral, or the safety supervisor's brake."""
+        return self.cmd is None or self.reason == "safety"
+
+
+@dataclass(frozen=True)
+class MuxInput:
+    """One input of the mux.
+
+    :param channel: its key leaf (keys.SAFETY, keys.TELEOP, ...), also the name offers use.
+    :param source: the only DriveCommand.source accepted; None = any (the simulator's cmd).
+    :param timeout_s: a command is in force this long after it arrived.
+    :param reason: the Decision.reason while it drives.
+    """
+
+    channel: str
+    source: str | None
+    timeout_s: float
+    reason: str
+
+
+PRIORITY = (keys.SAFETY, keys.TELEOP, keys.DRIVE_ROS, keys.CMD)
+"""Inputs below the e-stop latch, highest priority first."""
+
+HELD_BY_TELEOP = (keys.DRIVE_ROS, keys.CMD)
+"""Inputs muted for teleop_hold_s after a teleop command."""
 
 
 class CommandMux:
-    """Priority mux with watchdog and e-stop latch. Thread-safe: callbacks offer, the loop decides.
+    """Priority mux with per-input timeouts and the e-stop latch (order: module docstring).
 
-    :param controller: the only source accepted on the cmd channel.
-    :param teleop_source: the only source accepted on the teleop channel.
+    Thread-safe: callbacks offer, the loop decides. Times are seconds of one clock of the
+    caller's choice (monotonic on the car, sim time in lockstep).
+
+    :param controller: the only source accepted on the cmd input (None: any).
+    :param teleop_source: the only source accepted on the teleop input.
+    :param timeout_s: timeout of the cmd input (and of teleop unless teleop_timeout_s is given).
+    :param teleop_hold_s: after a teleop command, ROS drive and controller are muted this long.
+    :param safety_source, safety_timeout_s: the safety brake input.
+    :param ros_source, ros_timeout_s: the ROS /drive input.
     """
 
-    def __init__(self, controller: str, teleop_source: str, timeout_s: float, teleop_hold_s: float):
+    def __init__(self, controller: str | None, teleop_source: str, timeout_s: float, teleop_hold_s: float,
+                 safety_source: str = "safety", safety_timeout_s: float = 0.2, ros_source: str = "ros",
+                 ros_timeout_s: float = 0.25, teleop_timeout_s: float | None = None):
         self.controller, self.teleop_source = controller, teleop_source
         self.timeout_s, self.teleop_hold_s = timeout_s, teleop_hold_s
+        self.inputs = {i.channel: i for i in (
+            MuxInput(keys.SAFETY, safety_source, safety_timeout_s, "safety"),
+            MuxInput(keys.TELEOP, teleop_source, timeout_s if teleop_timeout_s is None else teleop_timeout_s,
+                     "teleop"),
+            MuxInput(keys.DRIVE_ROS, ros_source, ros_timeout_s, "ros"),
+            MuxInput(keys.CMD, controller, timeout_s, "controller"))}
         self._lock = threading.Lock()
-        self._ctrl: tuple[DriveCommand, float] | None = None
-        self._tele: tuple[DriveCommand, float] | None = None
+        self._latest: dict[str, tuple[DriveCommand, float]] = {}
         self._last_tele = -math.inf
         self._malformed_at = -math.inf
         self.estopped = False
         self.refused = 0
         self.malformed = 0
         self.accepted = 0
+        self.accepted_by = {i.reason: 0 for i in self.inputs.values()}
+        """Commands accepted per input (by reason name), for the status."""
+
+    @classmethod
+    def from_config(cls, acfg: ActuatorConfig, controller: str | None = "", timeout_s: float | None = None
+                    ) -> "CommandMux":
+        """The mux the actuator section describes; the simulator passes ``controller=None``
+        (it accepts any controller) and its own watchdog as the cmd ``timeout_s``."""
+        return cls(acfg.controller if controller == "" else controller, acfg.teleop_source,
+                   acfg.timeout_s if timeout_s is None else timeout_s, acfg.teleop_hold_s,
+                   safety_source=acfg.safety_source, safety_timeout_s=acfg.safety_timeout_s,
+                   ros_source=acfg.ros_source, ros_timeout_s=acfg.ros_timeout_s,
+                   teleop_timeout_s=acfg.timeout_s)
 
     def offer(self, cmd: DriveCommand, channel: str, now: float) -> bool:
-        """A valid DriveCommand arrived on ``channel`` ("cmd" or "teleop") at monotonic ``now``."""
-        want = self.controller if channel == "cmd" else self.teleop_source
+        """A valid DriveCommand arrived on ``channel`` (a key leaf: cmd, teleop, safety,
+        drive_ros) at time ``now``; False (counted) if the source is not that input's."""
+        inp = self.inputs[channel]
         with self._lock:
-            if cmd.source != want:
+            if inp.source is not None and cmd.source != inp.source:
                 self.refused += 1
                 return False
             self.accepted += 1
-            if channel == "teleop":
-                self._tele = (cmd, now)
+            self.accepted_by[inp.reason] += 1
+            self._latest[channel] = (cmd, now)
+            if channel == keys.TELEOP:
                 self._last_tele = now
-            else:
-                self._ctrl = (cmd, now)
             return True
 
     def reject(self, channel: str, now: float) -> None:
-        """A malformed payload arrived on ``channel``: whatever that channel said no longer holds."""
+        """A malformed payload arrived on ``channel``: whatever that input said no longer holds."""
         with self._lock:
             self.malformed += 1
             self._malformed_at = now
-            if channel == "teleop":
-                self._tele = None
-            else:
-                self._ctrl = None
+            self._latest.pop(channel, None)
 
     def estop(self, payload: bytes) -> None:
         """Any payload latches the e-stop; exactly b"clear" clears it."""
@@ -145,14 +225,15 @@ class CommandMux:
         with self._lock:
             if self.estopped:
                 return Decision(None, "estop", far)
-            if self._tele is not None and now - self._tele[1] < self.timeout_s:
-                return Decision(self._tele[0], "teleop", self._tele[1] + self.timeout_s)
             hold_until = self._last_tele + self.teleop_hold_s
-            if now < hold_until:
-                return Decision(None, "teleop hold", hold_until)
-            if self._ctrl is not None and now - self._ctrl[1] < self.timeout_s:
-                return Decision(self._ctrl[0], "controller", self._ctrl[1] + self.timeout_s)
-            if self._ctrl is not None or self._tele is not None:
+            for channel in PRIORITY:
+                if channel in HELD_BY_TELEOP and now < hold_until:
+                    return Decision(None, "teleop hold", hold_until)
+                got = self._latest.get(channel)
+                inp = self.inputs[channel]
+                if got is not None and now - got[1] < inp.timeout_s:
+                    return Decision(got[0], inp.reason, got[1] + inp.timeout_s, got[1])
+            if self._latest:
                 return Decision(None, "timeout", far)
             if now - self._malformed_at < self.timeout_s:
                 return Decision(None, "malformed", far)

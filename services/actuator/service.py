@@ -1,7 +1,8 @@
 """`racecav actuator`: DriveCommands to the VESC, with its own watchdog (the firmware's is a backstop).
 
-Inputs: racecav/<car>/cmd (the configured controller only), racecav/<car>/teleop (overrides),
-racecav/<car>/estop (any payload latches, "clear" clears). Every decision is in
+Inputs, in the mux's priority order: racecav/<car>/estop (any payload latches, "clear"
+clears), .../safety (the safety supervisor's brake), .../teleop (overrides), .../drive_ros (ROS
+/drive), .../cmd (the configured controller only). Every decision is in
 :mod:`racecav.services.actuator.control`; this module wires it to the bus and the serial port.
 
 Timing: a fresh command is forwarded as soon as it arrives; the current command (or neutral) is
@@ -23,7 +24,7 @@ import serial
 from racecav.common.bus import Service
 from racecav.common.codec import DecodeError, decode
 from racecav.common.config import Config
-from racecav.common.keys import CMD, ESTOP, TELEOP
+from racecav.common.keys import CMD, DRIVE_ROS, ESTOP, SAFETY, TELEOP
 from racecav.common.messages import DriveCommand
 from racecav.services.actuator import vesc_protocol as vp
 from racecav.services.actuator.control import CommandMux, Decision, Mapping
@@ -127,13 +128,14 @@ class ActuatorService(Service):
 
         car = load_car(self.acfg.car) if self.acfg.throttle_map == "sim" else None
         self.mapping = Mapping(self.acfg, car)
-        self.mux = CommandMux(self.acfg.controller, self.acfg.teleop_source, self.acfg.timeout_s,
-                              self.acfg.teleop_hold_s)
+        self.mux = CommandMux.from_config(self.acfg)
         self.link = VescLink(self.port, self.acfg.baudrate, self._on_values)
         self.values_pub = self.session.declare_publisher(self.topic("vesc"))
         self._declared.append(self.values_pub)
         self.subscribe(self.topic(CMD), None, lambda raw: self._on_cmd(raw, "cmd"))
-        self.subscribe(self.topic(TELEOP), None, lambda raw: self._on_cmd(raw, "teleop"))
+        # the mux's inputs (order and timeouts: actuator/control.py)
+        for channel in (SAFETY, TELEOP, DRIVE_ROS):
+            self.subscribe(self.topic(channel), None, lambda raw, c=channel: self._on_cmd(raw, c))
         self.subscribe(self.topic(ESTOP), None, self._on_estop)
         self.queryable("values", lambda _p: dict(self.values))
 
@@ -183,7 +185,7 @@ class ActuatorService(Service):
         changed = d.reason != self._last_reason or (d.cmd is not None and self.decision is not None
                                                    and d.cmd is not self.decision.cmd)
         if changed or now >= self._next_send:
-            frames = self.mapping.drive_frames(d.cmd) if d.cmd is not None else self.mapping.neutral_frames()
+            frames = self.mapping.decision_frames(d)
             self.link.write(frames)
             self._next_send = now + 1.0 / self.acfg.rate_hz
             if d.reason != self._last_reason:
@@ -197,7 +199,8 @@ class ActuatorService(Service):
         d = self.decision
         return dict(port=self.port, connected=bool(self.link and self.link.connected),
                     driving=d.reason if d else "", estop=self.mux.estopped if self.link else False,
-                    accepted=self.mux.accepted if self.link else 0, refused=self.mux.refused if self.link else 0,
+                    accepted=self.mux.accepted if self.link else 0,
+                    accepted_by=dict(self.mux.accepted_by) if self.link else {}, refused=self.mux.refused if self.link else 0,
                     malformed=self.mux.malformed if self.link else 0,
                     frames_sent=self.link.frames_sent if self.link else 0,
                     serial_error=self.link.last_error if self.link else "",
