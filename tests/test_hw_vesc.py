@@ -54,7 +54,7 @@ def test_get_values_parsed_defensively_by_length():
     vals = dict(temp_fet=40.5, temp_motor=33.1, avg_motor_current=-2.25, avg_input_current=1.5, duty=0.123,
                 rpm=-4567, v_in=12.3, amp_hours=0.0123, watt_hours=0.5, tachometer=-99, tachometer_abs=99, fault=3)
     payload = vp.encode_values(vals)
-    assert len(payload) == 54
+    assert len(payload) == vp.VALUES_LEN == 74  # current firmware: the full field list
     full = vp.parse_values(payload)
     for k, v in vals.items():
         assert full[k] == pytest.approx(v)

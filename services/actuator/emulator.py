@@ -2,10 +2,11 @@
 
 Parses the frames it is sent exactly like a VESC (CRC-checked, garbage skipped), records every
 one with its arrival time (monotonic) in memory and optionally in a JSON-lines log, answers
-GET_VALUES and FW_VERSION, and runs a simple motor model so the values move: ERPM follows the
-commanded ERPM (SET_RPM) or duty x ``erpm_per_duty`` (SET_DUTY) with a first-order lag, brakes
-decay fast, currents accelerate; like the firmware, with no command for ``app_timeout_s`` the
-motor is released (coasts).
+GET_VALUES (current firmware's full field list, 74 bytes) and FW_VERSION, and runs a simple
+motor model so the values move: ERPM follows the commanded ERPM (SET_RPM) or duty x
+``erpm_per_duty`` (SET_DUTY) with a first-order lag, brakes decay fast, currents accelerate; like
+the firmware, with no command for ``app_timeout_s`` the motor is released (coasts) and the
+status field's timeout bit is set.
 """
 
 from __future__ import annotations
@@ -177,10 +178,15 @@ class VescEmulator:
         self.tacho += self.rpm * dt / 60.0 * 6  # 6 tacho steps per electrical revolution (3 phases x 2)
 
     def values(self) -> dict[str, float]:
+        """The GET_VALUES fields (all of current firmware's, see vesc_protocol.VALUES_FIELDS)."""
+        timed_out = time.monotonic() - self._last_cmd > self.app_timeout_s
+        duty = self.rpm / self.erpm_per_duty
         return dict(temp_fet=31.5, temp_motor=29.0, avg_motor_current=self.current,
-                    avg_input_current=self.current * abs(self.rpm) / 60000.0, duty=self.rpm / self.erpm_per_duty,
+                    avg_input_current=self.current * abs(duty), avg_id=0.0, avg_iq=self.current, duty=duty,
                     rpm=self.rpm, v_in=self.v_in, tachometer=self.tacho, tachometer_abs=abs(self.tacho),
-                    fault=self.fault)
+                    fault=self.fault, pid_pos=0.0, controller_id=0,
+                    temp_mos1=31.4, temp_mos2=31.6, temp_mos3=31.5, avg_vd=0.0, avg_vq=duty * self.v_in,
+                    status=vp.STATUS_TIMEOUT if timed_out else 0)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

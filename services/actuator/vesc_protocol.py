@@ -145,43 +145,72 @@ def parse_command(payload: bytes) -> Command:
 
 # --- GET_VALUES -----------------------------------------------------------------------------------
 
-# (name, offset into the payload, struct format, divisor); payload[0] is the command id 04.
-VALUES_LAYOUT = (
-    ("temp_fet", 1, ">h", 10.0), ("temp_motor", 3, ">h", 10.0),
-    ("avg_motor_current", 5, ">i", 100.0), ("avg_input_current", 9, ">i", 100.0),
-    ("avg_id", 13, ">i", 100.0), ("avg_iq", 17, ">i", 100.0),
-    ("duty", 21, ">h", 1000.0), ("rpm", 23, ">i", 1.0), ("v_in", 27, ">h", 10.0),
-    ("amp_hours", 29, ">i", 1e4), ("amp_hours_charged", 33, ">i", 1e4),
-    ("watt_hours", 37, ">i", 1e4), ("watt_hours_charged", 41, ">i", 1e4),
-    ("tachometer", 45, ">i", 1.0), ("tachometer_abs", 49, ">i", 1.0), ("fault", 53, ">B", 1.0),
+# The reply's fields in the firmware's order (vedderb/bldc comm/commands.c, COMM_GET_VALUES with
+# every mask bit set): (name, struct format, scale). The firmware writes int(value * scale)
+# big-endian; offsets follow from the order, payload[0] being the command id 04. Current firmware
+# sends all of them: 74 bytes. Older firmware stops earlier (after `fault`: 54 bytes).
+VALUES_FIELDS = (
+    ("temp_fet", ">h", 1e1), ("temp_motor", ">h", 1e1),
+    ("avg_motor_current", ">i", 1e2), ("avg_input_current", ">i", 1e2),
+    ("avg_id", ">i", 1e2), ("avg_iq", ">i", 1e2),
+    ("duty", ">h", 1e3), ("rpm", ">i", 1.0), ("v_in", ">h", 1e1),
+    ("amp_hours", ">i", 1e4), ("amp_hours_charged", ">i", 1e4),
+    ("watt_hours", ">i", 1e4), ("watt_hours_charged", ">i", 1e4),
+    ("tachometer", ">i", 1.0), ("tachometer_abs", ">i", 1.0), ("fault", ">B", 1.0),
+    ("pid_pos", ">i", 1e6), ("controller_id", ">B", 1.0),
+    ("temp_mos1", ">h", 1e1), ("temp_mos2", ">h", 1e1), ("temp_mos3", ">h", 1e1),
+    ("avg_vd", ">i", 1e3), ("avg_vq", ">i", 1e3),
+    ("status", ">B", 1.0),  # bit 0: the app timeout has expired; bit 1: kill switch active
 )
 
 
+def _layout() -> tuple[tuple[str, int, str, float], ...]:
+    out, off = [], 1
+    for name, fmt, scale in VALUES_FIELDS:
+        out.append((name, off, fmt, scale))
+        off += struct.calcsize(fmt)
+    return tuple(out)
+
+
+VALUES_LAYOUT = _layout()
+"""(name, offset into the payload, struct format, scale), derived from VALUES_FIELDS."""
+VALUES_LEN = VALUES_LAYOUT[-1][1] + struct.calcsize(VALUES_LAYOUT[-1][2])
+"""74: the reply payload of current firmware, command id included."""
+STATUS_TIMEOUT, STATUS_KILL_SWITCH = 0x01, 0x02
+
+
 def parse_values(payload: bytes) -> dict[str, float]:
-    """GET_VALUES reply -> dict. Fields beyond the payload's length are absent (the layout grows
-    with the firmware version: parse what is there, never guess).
+    """GET_VALUES reply -> dict, reading the fields in the firmware's order.
+
+    Fields beyond the payload's length are absent (older firmware sends fewer: parse what is
+    there, never guess); bytes after the last field racecav knows (a newer firmware's additions)
+    are ignored. Integer fields stay ints; the others are divided by their scale.
 
     :raises FrameError: if the payload is not a GET_VALUES reply.
     """
     if not payload or payload[0] != COMM_GET_VALUES:
         raise FrameError(f"GET_VALUES reply: first byte {payload[:1].hex() or 'missing'}, expected 04")
     out: dict[str, float] = {}
-    for name, off, fmt, div in VALUES_LAYOUT:
+    for name, off, fmt, scale in VALUES_LAYOUT:
         size = struct.calcsize(fmt)
         if off + size > len(payload):
             break
         v = struct.unpack_from(fmt, payload, off)[0]
-        out[name] = int(v) if div == 1.0 else v / div
+        out[name] = int(v) if scale == 1.0 else v / scale
     return out
 
 
-def encode_values(values: dict[str, float]) -> bytes:
-    """Build a GET_VALUES reply payload (emulator); missing fields are 0."""
+def encode_values(values: dict[str, float], length: int = VALUES_LEN) -> bytes:
+    """Build a GET_VALUES reply payload (emulator) with the fields that fit in ``length`` bytes.
+
+    :param values: field values in physical units; missing fields are 0.
+    :param length: payload length to emit, cut at a field boundary (54 = older firmware).
+    """
     out = bytearray(bytes((COMM_GET_VALUES,)))
-    for name, off, fmt, div in VALUES_LAYOUT:
-        assert len(out) == off
-        v = values.get(name, 0)
-        out += struct.pack(fmt, int(round(v * div)))
+    for name, off, fmt, scale in VALUES_LAYOUT:
+        if off + struct.calcsize(fmt) > length:
+            break
+        out += struct.pack(fmt, int(round(values.get(name, 0) * scale)))
     return bytes(out)
 
 
