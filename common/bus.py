@@ -11,6 +11,12 @@ class owns what every service must do the same way:
 - inputs that keep only the newest sample (sensor data: a stale scan is worthless) and are
   decoded and validated in the subscriber callback; invalid payloads are counted and logged
   (rate-limited) and never stop the service;
+- no input kills or silences a service: an exception escaping a subscriber callback, a query
+  handler or ``step()`` is caught, counted in the status (``errors``, ``last_error``), logged
+  rate-limited (the first of each kind with its traceback) and the service carries on;
+- explicit reconnection: a client that loses its router retries every
+  ``bus.reconnect_initial_s`` growing to ``bus.reconnect_max_s`` (zenoh's defaults are 1 s to
+  4 s), so commands flow again well within a second of the router listening again;
 - command publishers that are express and high priority;
 - clean shutdown on SIGINT/SIGTERM (undeclare everything, then close: closing a session with
   live declarations can hang), and systemd's sd_notify READY=1 / WATCHDOG=1 when NOTIFY_SOCKET
@@ -22,6 +28,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import threading
@@ -32,11 +39,19 @@ import zenoh
 
 from racecav.common import keys
 from racecav.common.codec import DecodeError, decode, encode
-from racecav.common.config import BusConfig, Config
+from racecav.common.config import BusConfig, Config, ConfigError
 from racecav.common.messages import Message, ServiceStatus
 
 M = TypeVar("M", bound=Message)
 log = logging.getLogger("racecav.bus")
+
+
+def zenoh_error(e: BaseException) -> str:
+    """One readable line from a zenoh error (without the Rust source locations)."""
+    text = " ".join(str(e).split()) or type(e).__name__
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", text)
+    m = re.search(r'msg: "([^"]*)"', text)
+    return (m.group(1) if m else text)[:300]
 
 
 def zenoh_config(bus: BusConfig, mode: str | None = None, listen: list[str] | None = None,
@@ -46,9 +61,23 @@ def zenoh_config(bus: BusConfig, mode: str | None = None, listen: list[str] | No
     :param mode: override of bus.mode ("router" for ``racecav router``).
     :param listen: endpoints to listen on (routers); clients listen on nothing.
     :param config_file: a zenoh JSON5 file to start from (access control, TLS, ...).
+    :raises ConfigError: a missing/invalid file or an invalid endpoint, in one line.
     """
+    try:
+        return _zenoh_config(bus, mode, listen, config_file)
+    except ConfigError:
+        raise
+    except Exception as e:
+        eps = listen if mode == "router" else bus.connect
+        raise ConfigError(f"bus: invalid zenoh setting (endpoints {', '.join(eps or [])}): {zenoh_error(e)}") from None
+
+
+def _zenoh_config(bus: BusConfig, mode, listen, config_file) -> zenoh.Config:
     path = config_file or bus.zenoh_config
-    conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
+    try:
+        conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
+    except Exception as e:  # missing, unreadable or invalid JSON5: say which file, no traceback
+        raise ConfigError(f"zenoh config file {path}: {zenoh_error(e)}") from None
     conf.insert_json5("mode", json.dumps(mode or bus.mode))
     if mode == "router":
         conf.insert_json5("listen/endpoints", json.dumps(listen or []))
@@ -59,6 +88,11 @@ def zenoh_config(bus: BusConfig, mode: str | None = None, listen: list[str] | No
         peer = (mode or bus.mode) == "peer"
         conf.insert_json5("listen/endpoints", json.dumps(bus.listen if peer else []))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
+    if mode != "router":
+        # Reconnect quickly after the router restarts (zenoh: 1 s growing to 4 s by default).
+        retry = {"period_init_ms": int(bus.reconnect_initial_s * 1000),
+                 "period_max_ms": int(bus.reconnect_max_s * 1000), "period_increase_factor": 1.5}
+        conf.insert_json5("connect/retry", json.dumps(retry))
     if bus.user is not None and mode != "router":
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(bus.user))
         conf.insert_json5("transport/auth/usrpwd/password", json.dumps(bus.password or ""))
@@ -92,14 +126,21 @@ class RateLimitedLog:
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
 
-    def warning(self, topic: str, msg: str) -> None:
+    def warning(self, topic: str, msg: str, exc_info=None) -> bool:
+        """Log ``msg`` unless ``topic`` was logged less than a period ago; True if logged.
+
+        :param exc_info: an exception whose traceback is logged with the first line of a topic.
+        """
         now = time.monotonic()
-        if now - self._last.get(topic, -1e9) < self._period:
+        last = self._last.get(topic)
+        if last is not None and now - last < self._period:
             self._suppressed[topic] = self._suppressed.get(topic, 0) + 1
-            return
+            return False
         n = self._suppressed.pop(topic, 0)
         self._last[topic] = now
-        self._logger.warning("%s%s", msg, f" ({n} more suppressed)" if n else "")
+        self._logger.warning("%s%s", msg, f" ({n} more suppressed)" if n else "",
+                             exc_info=exc_info if last is None else None)
+        return True
 
 
 class Inbox(Generic[M]):
@@ -119,7 +160,10 @@ class Inbox(Generic[M]):
         """Monotonic arrival time of the newest message."""
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        msg = self._service._decode(self.key, sample.payload.to_bytes(), self.cls)
+        with self._service.guard(f"input {self.key}"):
+            self._store(self._service._decode(self.key, sample.payload.to_bytes(), self.cls))
+
+    def _store(self, msg: M | None) -> None:
         if msg is None:
             return
         with self._cond:
@@ -179,7 +223,7 @@ class Service:
         self.log = logging.getLogger(f"racecav.{name}")
         self._rlog = RateLimitedLog(self.log, cfg.bus.status_log_period_s)
         self.stop_event = threading.Event()
-        self.received = self.published = self.invalid = self.dropped = 0
+        self.received = self.published = self.invalid = self.dropped = self.errors = 0
         self.last_error = ""
         self._started = time.monotonic()
         self._declared: list[Any] = []
@@ -210,20 +254,23 @@ class Service:
         ``callback(raw_bytes)`` when ``cls`` is None. Keep the callback short."""
 
         def on_sample(sample: zenoh.Sample) -> None:
-            data = sample.payload.to_bytes()
-            if cls is None:
-                self.received += 1
-                callback(data)
-                return
-            msg = self._decode(key, data, cls)
-            if msg is not None:
-                callback(msg)
+            with self.guard(f"input {key}"):
+                data = sample.payload.to_bytes()
+                if cls is None:
+                    self.received += 1
+                    callback(data)
+                    return
+                msg = self._decode(key, data, cls)
+                if msg is not None:
+                    callback(msg)
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
     def queryable(self, leaf: str, handler: Callable[[bytes | None], Message | dict]) -> None:
         """Declare racecav/<car>/<service>/<leaf>; ``handler(payload)`` returns the reply (a
-        Message, encoded; or a JSON-able dict). An exception becomes a reply error."""
+        Message, encoded; or a JSON-able dict). An exception becomes a reply error: a
+        ValueError (a bad payload: the handler's validation) counts as ``invalid``, anything
+        else as ``errors``."""
         key = keys.service_key(self.car, self.name, leaf)
 
         def on_query(query: zenoh.Query) -> None:
@@ -232,13 +279,30 @@ class Service:
                 out = handler(payload)
                 data = encode(out) if isinstance(out, Message) else json.dumps(out).encode()
                 query.reply(key, data)
-            except Exception as e:  # a bad query must not kill the service
+            except ValueError as e:  # a bad payload, refused by the handler
+                self.invalid += 1
                 self._record_error(f"query {leaf}: {e}")
-                query.reply_err(str(e).encode())
+                self._reply_err(query, str(e))
+            except Exception as e:  # a bad query must not kill the service
+                self.errors += 1
+                self._record_error(f"query {leaf}: {type(e).__name__}: {e}", e)
+                self._reply_err(query, f"{type(e).__name__}: {e}")
 
         self._declared.append(self.session.declare_queryable(key, on_query))
 
+    @staticmethod
+    def _reply_err(query: zenoh.Query, text: str) -> None:
+        try:
+            query.reply_err(text[:1000].encode())
+        except Exception:  # the querier is gone: nothing left to tell
+            pass
+
     # --- counters ---------------------------------------------------------------------------
+
+    def guard(self, where: str) -> "_Guard":
+        """``with self.guard("what"):`` runs a block whose exceptions are counted as ``errors``,
+        logged (rate-limited) and swallowed: for callbacks and loop steps, never for set-up."""
+        return _Guard(self, where)
 
     def _decode(self, key: str, data: bytes, cls: type[M]) -> M | None:
         self.received += 1
@@ -249,9 +313,9 @@ class Service:
             self._record_error(f"invalid payload on {key}: {e}")
             return None
 
-    def _record_error(self, text: str) -> None:
-        self.last_error = text
-        self._rlog.warning(text.split(":")[0], text)
+    def _record_error(self, text: str, exc: BaseException | None = None) -> None:
+        self.last_error = text[:1000]
+        self._rlog.warning(text.split(":")[0], self.last_error, exc_info=exc)
 
     def info(self) -> dict[str, Any]:
         """Service-specific status fields; override to add mode, source, solver stats..."""
@@ -260,11 +324,18 @@ class Service:
     def status(self) -> ServiceStatus:
         self._status_seq += 1
         outputs = {p.key: p.latest.model_dump(mode="json") for p in self._publishers if p.latest is not None}
+        try:
+            info = self.info()
+            json.dumps(info)  # must survive encoding: a bad value must not break every status query
+        except Exception as e:
+            self.errors += 1
+            self._record_error(f"status info: {type(e).__name__}: {e}", e)
+            info = {"info_error": self.last_error}
         return ServiceStatus(
             stamp_ns=time.monotonic_ns(), seq=self._status_seq, service=self.name, car=self.car,
             pid=os.getpid(), uptime_s=time.monotonic() - self._started, received=self.received,
-            published=self.published, invalid=self.invalid, dropped=self.dropped,
-            last_error=self.last_error, config_digest=self._config_digest, info=self.info(),
+            published=self.published, invalid=self.invalid, dropped=self.dropped, errors=self.errors,
+            last_error=self.last_error, config_digest=self._config_digest, info=info,
             outputs=outputs)
 
     # --- life cycle -------------------------------------------------------------------------
@@ -280,8 +351,18 @@ class Service:
         """Called on stop, before undeclaring (e.g. send a last neutral command). Override."""
 
     def open(self) -> None:
+        """Join the bus and declare everything.
+
+        :raises ConfigError: the session cannot be opened (no router at ``bus.connect``, an
+            invalid endpoint, a router endpoint in use): one line naming the endpoints.
+        """
         conf = zenoh_config(self.cfg.bus, self._mode, self._listen, self._zenoh_file)
-        self.session = zenoh.open(conf)
+        try:
+            self.session = zenoh.open(conf)
+        except Exception as e:
+            where = (f"listen {', '.join(self._listen or [])}" if self._mode == "router"
+                     else f"bus.connect {', '.join(self.cfg.bus.connect)}")
+            raise ConfigError(f"{self.name}: cannot join the bus ({where}): {zenoh_error(e)}") from None
         self._declared.append(self.session.liveliness().declare_token(keys.alive_key(self.car, self.name)))
         self.queryable("status", lambda _payload: self.status())
         self.setup()
@@ -316,7 +397,12 @@ class Service:
             sd_notify("READY=1")
             last_ping = 0.0
             while not self.stop_event.is_set():
-                self.step()
+                ok = False
+                with self.guard("step"):
+                    self.step()
+                    ok = True
+                if not ok:  # a step that keeps failing must not spin a core
+                    self.stop_event.wait(0.01)
                 if watchdog_s and time.monotonic() - last_ping >= watchdog_s:
                     sd_notify("WATCHDOG=1")
                     last_ping = time.monotonic()
@@ -325,3 +411,20 @@ class Service:
             self.close()
             self.log.info("%s stopped", self.name)
         return 0
+
+
+class _Guard:
+    """Context manager behind :meth:`Service.guard`."""
+
+    def __init__(self, service: Service, where: str):
+        self.service, self.where = service, where
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, typ, exc, tb) -> bool:
+        if exc is None or not isinstance(exc, Exception):
+            return False
+        self.service.errors += 1
+        self.service._record_error(f"{self.where}: {typ.__name__}: {exc}", exc)
+        return True

@@ -5,7 +5,11 @@
 so any msgpack client can read a message (numpy: ``np.frombuffer(m["ranges"], "<f4")``).
 
 :func:`decode` validates everything and raises :class:`DecodeError` (with a ``kind``) on any
-malformed input; it never returns a half-valid message.
+malformed input, and nothing else: it never returns a half-valid message and never lets another
+exception type out (a subscriber callback can rely on catching DecodeError only). Validation is
+strict: no coercion of strings or booleans into numbers (``"1.0"`` or ``true`` in a float field is
+an error), integers must fit int64, floats must be finite and within each field's range
+(:mod:`racecav.common.messages`).
 """
 
 from __future__ import annotations
@@ -42,11 +46,18 @@ def _wire(v):
 
 
 def encode(msg: Message) -> bytes:
-    """Serialise a message (arrays as little-endian float32 bytes)."""
+    """Serialise a message (arrays as little-endian float32 bytes).
+
+    :raises ValueError: a field that msgpack cannot carry (e.g. an integer beyond 64 bits set
+        without validation); never a half-written payload.
+    """
     d = {"v": SCHEMA_VERSION, "t": msg.TYPE}
     for k, v in msg.__dict__.items():  # faster than model_dump() on the 60 Hz scan path
         d[k] = _wire(v)
-    return msgpack.packb(d, use_bin_type=True)
+    try:
+        return msgpack.packb(d, use_bin_type=True)
+    except (OverflowError, TypeError, ValueError) as e:
+        raise ValueError(f"encode {msg.TYPE}: {type(e).__name__}: {e}") from None
 
 
 def decode(data: bytes | bytearray | memoryview, cls: type[M] | None = None,
@@ -56,6 +67,15 @@ def decode(data: bytes | bytearray | memoryview, cls: type[M] | None = None,
     :param cls: the expected message class; None accepts any known type.
     :raises DecodeError: on oversize, non-msgpack, wrong version, wrong type or invalid fields.
     """
+    try:
+        return _decode(data, cls, max_bytes)
+    except DecodeError:
+        raise
+    except Exception as e:  # a validator bug or an exotic input: still only a DecodeError
+        raise DecodeError("schema", f"{type(e).__name__}: {e}") from None
+
+
+def _decode(data, cls, max_bytes):
     if len(data) > max_bytes:
         raise DecodeError("oversize", f"{len(data)} bytes > {max_bytes}")
     try:
@@ -74,8 +94,8 @@ def decode(data: bytes | bytearray | memoryview, cls: type[M] | None = None,
         want = cls.TYPE if cls is not None else "a known type"
         raise DecodeError("type", f"message type {t!r}, expected {want}")
     try:
-        return target.model_validate(d)  # type: ignore[return-value]
+        return target.model_validate(d, strict=True)  # type: ignore[return-value]
     except ValidationError as e:
-        err = e.errors()[0]
+        err = e.errors(include_url=False)[0]
         field = ".".join(str(p) for p in err["loc"]) or "message"
         raise DecodeError("schema", f"{target.TYPE}.{field}: {err['msg']}") from None

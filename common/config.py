@@ -57,6 +57,11 @@ class BusConfig(Section):
     """Minimum period between two log lines about invalid input (rate limit)."""
     max_payload_bytes: int = Field(65536, gt=0)
     """Payloads larger than this are rejected before decoding."""
+    reconnect_initial_s: float = Field(0.1, gt=0, le=10)
+    """A client that lost its router retries after this long, then each time 1.5x longer ..."""
+    reconnect_max_s: float = Field(0.25, gt=0, le=60)
+    """... up to this period (zenoh's defaults, 1 s to 4 s, meant 2.5 s without commands after a
+    router restart). A retry is one TCP connect on loopback: cheap."""
 
 
 class RouterConfig(Section):
@@ -365,6 +370,44 @@ class BaselineConfig(Section):
     """[baseline.perception] in TOML, RACECAV_BASELINE__PERCEPTION__<FIELD> in the environment."""
 
 
+class Ros2Config(Section):
+    """The ROS 2 mirror (``racecav ros2``): the car's keys as ROS 2 topics over Zenoh, and ROS
+    ``/drive`` as a command input of the mux (docs/ros2.md)."""
+
+    mode: Literal["rmw_zenoh", "humble", "bridge"] = "rmw_zenoh"
+    """rmw_zenoh: ROS 2 Jazzy or later with rmw_zenoh (RIHS01 type hashes in keys and tokens);
+    humble: rmw_zenoh on Humble (TypeHashNotSupported); bridge: zenoh-bridge-ros2dds (plain topic
+    keys, CDR, no attachment, no liveliness tokens)."""
+    connect: list[str] = []
+    """Zenoh endpoints of the ROS side (e.g. an rmw_zenohd router on tcp/127.0.0.1:7448); empty:
+    publish on the car's own bus (ROS nodes then connect to the racecav router)."""
+    domain_id: int = Field(0, ge=0, le=232)
+    """ROS_DOMAIN_ID: the first level of rmw_zenoh keys and tokens."""
+    node: str = Field("racecav", pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
+    """ROS node name of the mirror (``ros2 node list``)."""
+    namespace: str = ""
+    """ROS namespace of the node and of relative topic names ("" = global)."""
+    bridge_prefix: str = ""
+    """bridge mode: the bridge's namespace, prefixed to every key ("" = none)."""
+    scan_topic: str = "/scan"
+    """sensor_msgs/msg/LaserScan mirror of racecav/<car>/scan ("" = off)."""
+    odom_topic: str = "/odom"
+    """nav_msgs/msg/Odometry mirror of racecav/<car>/state ("" = off)."""
+    drive_out_topic: str = "/drive_out"
+    """ackermann_msgs/msg/AckermannDriveStamped mirror of racecav/<car>/cmd ("" = off). Not
+    /drive: that name is the F1TENTH command input below, and a mirror must not feed it."""
+    drive_in_topic: str = "/drive"
+    """AckermannDriveStamped from ROS -> DriveCommand (source "ros") on racecav/<car>/drive_ros,
+    below teleop in the actuator's mux ("" = no ROS command input)."""
+    stamps: Literal["wall", "source"] = "wall"
+    """Header stamps: wall = this host's real-time clock at mirroring (what ROS tools expect);
+    source = the racecav stamp (sim time, or the car's monotonic clock)."""
+    base_frame: str = "base_link"
+    """The car's body frame: Odometry child_frame_id, AckermannDriveStamped frame_id."""
+    car: str = "slash"
+    """Car file: throttle model (speed <-> throttle) and steering limits."""
+
+
 class Config(Section):
     """The whole configuration. Sections are added by the services that own them."""
 
@@ -376,6 +419,7 @@ class Config(Section):
     sim: SimConfig = SimConfig()
     policy: PolicyConfig = PolicyConfig()
     baseline: BaselineConfig = BaselineConfig()
+    ros2: Ros2Config = Ros2Config()
 
     def digest(self) -> str:
         """Short hash of the effective configuration, reported in every ServiceStatus."""
@@ -433,6 +477,12 @@ def load_config(path: str | Path | None = None, environ: dict[str, str] | None =
             data = tomllib.loads(Path(path).read_text())
         except FileNotFoundError:
             raise ConfigError(f"config file {path}: not found") from None
+        except IsADirectoryError:
+            raise ConfigError(f"config file {path}: is a directory, not a TOML file") from None
+        except UnicodeDecodeError as e:
+            raise ConfigError(f"config file {path}: not UTF-8 text (byte {e.start})") from None
+        except OSError as e:
+            raise ConfigError(f"config file {path}: {e.strerror or e}") from None
         except tomllib.TOMLDecodeError as e:
             raise ConfigError(f"config file {path}: invalid TOML: {e}") from None
     data = _merge(data, _env_overrides(environ))

@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scripted": ("racecav.services.sim.scripted", "controller answering each scan with a scripted command program (tests, demos)"),
     "policy": ("racecav.services.policy.service", "DRL policy controller: newest Scan -> numpy MLP -> DriveCommand"),
     "baseline": ("racecav.services.baseline.service", "MPC-APF baseline controller: lidar obstacles + casadi MPC -> DriveCommand"),
+    "ros2": ("racecav.services.ros2.service", "ROS 2 mirror over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds): /scan /odom /drive_out out, /drive in (extra: ros2)"),
 }
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
@@ -88,7 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"racecav: {e}", file=sys.stderr)
         return 2
-    return int(importlib.import_module(args._module).run(args, cfg) or 0)
+    try:
+        return int(importlib.import_module(args._module).run(args, cfg) or 0)
+    except ConfigError as e:  # a bad set-up found while starting (bus, files, ports): one line
+        print(f"racecav {args.command}: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ def test_command_round_trip(a_t, a_s, stamp, scan_seq, src):
 
 
 @settings(max_examples=30, deadline=None)
-@given(x=finite, y=finite, yaw=finite, n=st.integers(0, 20))
+@given(x=finite, y=finite, yaw=st.floats(-4 * math.pi, 4 * math.pi), n=st.integers(0, 20))
 def test_state_and_obstacles_round_trip(x, y, yaw, n):
     st_msg = VehicleState(stamp_ns=5, source="sim", x=x, y=y, yaw=yaw, vx=1.0)
     assert decode(encode(st_msg), VehicleState) == st_msg
@@ -116,3 +116,86 @@ def test_command_out_of_range_rejected():
     d["a_throttle"] = 1.5
     with pytest.raises(DecodeError, match="a_throttle"):
         decode(msgpack.packb(d), DriveCommand)
+
+
+# --- hardening (issue 19): every reported killer payload is a DecodeError, nothing else ---------
+
+INT64_MAX = 2**63 - 1
+
+
+@pytest.mark.parametrize("field, value", [
+    ("stamp_ns", 2**64 - 1),               # passed decoding, then overflowed stamp + compute_ns
+    ("stamp_ns", 2**63),
+    ("seq", 2**63),
+    ("angle_min", -1e308),                 # OverflowError from round(inf)
+    ("angle_max", 1e308),
+    ("angle_increment", 5e-324),
+    ("angle_increment", 1e-9),
+    ("ranges", {"a": 1}),                  # TypeError in the array validator
+    ("intensities", {"a": 1}),
+    ("angle_min", "-0.78"),                # strings are not coerced
+    ("range_max", True),                   # nor booleans
+    ("stamp_ns", 1.5),
+    ("stamp_ns", True),
+    ("frame_id", 7),
+    ("frame_id", "x" * 65),
+    ("ranges", np.full(170, -1.0, "<f4").tobytes()),
+    ("scan_time", 1e300),
+])
+def test_scan_extremes_only_decode_error(field, value):
+    d = _raw(scan())
+    d[field] = value
+    with pytest.raises(DecodeError) as e:
+        decode(msgpack.packb(d, use_bin_type=True), Scan)
+    assert e.value.kind == "schema"
+
+
+def _cmd(**kw) -> dict:
+    base = dict(stamp_ns=1, source="policy", a_throttle=0.5, a_steer=0.5, throttle=0.5, steering_angle=0.18)
+    return _raw(DriveCommand(**{**base, **kw}))
+
+
+@pytest.mark.parametrize("field, value", [
+    ("a_throttle", -1.0),       # contradicts throttle 0.5
+    ("throttle", 1.0),          # contradicts a_throttle 0.5
+    ("steering_angle", -0.18),  # opposite sign of a_steer
+    ("throttle", "1"),
+    ("a_steer", True),
+    ("compute_ns", 2**63),
+    ("scan_stamp_ns", 2**64 - 1),
+    ("source", ""),
+    ("source", b"policy"),
+])
+def test_command_inconsistent_or_coerced_rejected(field, value):
+    d = _cmd()
+    d[field] = value
+    with pytest.raises(DecodeError) as e:
+        decode(msgpack.packb(d, use_bin_type=True), DriveCommand)
+    assert e.value.kind == "schema" and field in str(e.value)
+
+
+def test_command_consistent_accepted():
+    for a_t, t in ((-1.0, 0.0), (0.3, 0.3), (1.0, 1.0)):
+        out = decode(msgpack.packb(_cmd(a_throttle=a_t, throttle=t)), DriveCommand)
+        assert out.throttle == t
+    assert decode(msgpack.packb(_cmd(a_steer=0.0, steering_angle=0.0)), DriveCommand).a_steer == 0.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.dictionaries(st.sampled_from(["stamp_ns", "seq", "angle_min", "angle_max", "angle_increment",
+                                        "ranges", "intensities", "range_min", "range_max", "source",
+                                        "frame_id", "time_increment", "scan_time"]),
+                       st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(),
+                                 st.text(max_size=8), st.binary(max_size=64),
+                                 st.lists(st.floats(), max_size=4),
+                                 st.dictionaries(st.text(max_size=3), st.integers(-2**63, 2**63 - 1), max_size=2))))
+def test_scan_field_fuzz_only_decode_error(over):
+    d = _raw(scan())
+    d.update(over)
+    try:
+        msg = decode(msgpack.packb(d, use_bin_type=True), Scan)
+    except DecodeError:
+        return
+    assert 0 <= msg.stamp_ns <= INT64_MAX and math.isfinite(msg.angle_min) and msg.angle_increment >= 1e-5
+    again = decode(encode(msg), Scan)  # whatever is accepted survives a round trip
+    assert again.stamp_ns == msg.stamp_ns and np.array_equal(again.ranges, msg.ranges)

@@ -39,7 +39,7 @@ OUTWARD_IP = outward_ip()
 
 
 def command(source: str, seq: int, throttle: float) -> bytes:
-    return encode(DriveCommand(stamp_ns=time.monotonic_ns(), seq=seq, source=source, a_throttle=2 * throttle - 1,
+    return encode(DriveCommand(stamp_ns=time.monotonic_ns(), seq=seq, source=source, a_throttle=throttle,
                                a_steer=0.1, throttle=throttle, steering_angle=0.05))
 
 
