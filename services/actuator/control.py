@@ -216,9 +216,16 @@ class CommandMux:
             self._latest.pop(channel, None)
 
     def estop(self, payload: bytes) -> None:
-        """Any payload latches the e-stop; exactly b"clear" clears it."""
+        """Any payload latches the e-stop; exactly b"clear" clears it (not "CLEAR", not
+        " clear\n": a mistyped clear must leave the car stopped)."""
         with self._lock:
-            self.estopped = payload.strip().lower() != b"clear"
+            self.estopped = bytes(payload) != b"clear"
+
+    def lost(self, channel: str) -> None:
+        """The producer of ``channel`` died (its liveliness token vanished): what it said no
+        longer holds, at once rather than after the input's timeout (not counted as malformed)."""
+        with self._lock:
+            self._latest.pop(channel, None)
 
     def decide(self, now: float) -> Decision:
         far = now + 3600.0
