@@ -210,6 +210,10 @@ class SimConfig(Section):
     """Override the car file's lidar range (m); None = the car's (12 m)."""
     publish_obstacles: bool = True
     """Publish ground-truth ObstacleStates every step."""
+    lockstep_safety: bool = False
+    """Lockstep: also wait for the safety supervisor's verdict on each scan before stepping, so
+    its brake applies to the scan it answers (set when ``racecav safety`` runs, e.g. ``racecav
+    eval --safety on``)."""
 
 
 class EnvConfig(Section):

@@ -14,6 +14,15 @@ Two modes (config section ``sim``):
   controller's measured compute latency: a slow controller still pays for its slowness). Same
   seed, same commands => same trajectory.
 
+Inputs are arbitrated by the actuator's own mux (:class:`CommandMux`, actuator section: e-stop
+latch > safety brake > teleop > ROS drive > controller, each with its timeout), so the sim and
+the car obey the same order; the sim's cmd input accepts any controller and times out after
+``watchdog_s``. Realtime: wall clock, like the actuator. Lockstep: sim time (a command counts
+from its scan's stamp plus its compute time); with ``lockstep_safety`` each step also waits for
+the safety supervisor's verdict on the scan (racecav/<car>/safety/verdict), so a brake always
+applies to the scan it answers. A brake (neutral or the supervisor's) sets the wheel speed
+target to 0.
+
 Stamps are sim time (ns, monotonic across episodes); scan seq is monotonic across episodes.
 Queryables: racecav/<car>/sim/status, .../sim/reset (JSON {"seed": int?, "heading": str?}) and
 .../sim/scenario (JSON {"name": NAME|FILE, "seed": int?}; no payload: current and available).
@@ -36,6 +45,7 @@ from racecav.common.lidar import make_scan
 from racecav.common.messages import DriveCommand, Obstacle, ObstacleStates, VehicleState
 from racecav.common.scenario import load_scenario, scenario_names
 from racecav.common.vehicle import load_car
+from racecav.services.actuator.control import CommandMux, Decision
 
 log = logging.getLogger("racecav.sim")
 
@@ -81,6 +91,33 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     return svc.run()
 
 
+MAX_SEED = 2**32 - 1
+"""Seeds from queries are within [0, MAX_SEED] (numpy's legacy seed range): larger ones broke
+every status reply until the next reset (the status carries the seed)."""
+
+
+def query_object(payload: bytes, what: str, fields: set[str]) -> dict:
+    """A query's JSON object payload with only ``fields``; ValueError naming what is wrong."""
+    try:
+        data = json.loads(payload) if payload else {}
+    except ValueError as e:  # not UTF-8 or not JSON
+        raise ValueError(f"{what}: payload is not JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{what}: payload must be a JSON object")
+    unknown = set(data) - fields
+    if unknown:
+        raise ValueError(f"{what}: unknown field(s) {sorted(unknown)}")
+    return data
+
+
+def check_seed(data: dict, what: str) -> None:
+    """``data["seed"]``, if present, is an integer (not a bool) in [0, MAX_SEED]."""
+    if "seed" in data:
+        seed = data["seed"]
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+            raise ValueError(f"{what}.seed: must be an integer in [0, {MAX_SEED}]")
+
+
 class SimService(Service):
     """The sim service (see the module docstring)."""
 
@@ -96,9 +133,15 @@ class SimService(Service):
         self.next_seed = self.scfg.seed
         self.requests: queue.Queue = queue.Queue()
         self.counters = {"watchdog_brakes": 0, "stale_commands": 0, "lockstep_republish": 0,
-                         "overruns": 0}
+                         "overruns": 0, "safety_brakes": 0, "safety_verdict_timeouts": 0}
+        self.mux = CommandMux.from_config(cfg.actuator, controller=None, timeout_s=self.scfg.watchdog_s)
+        self._fed: dict[str, int] = {}
+        self._safety_on = False
+        self._judged = threading.Condition()
+        self._judged_seq = -1
         self.last_source = ""
-        self.pending: list[tuple[float, tuple[float, float]]] = []
+        self.pending: list[tuple[float, str, DriveCommand]] = []
+        """Lockstep: mux offers (sim time s, input, command) due in a later period."""
         self._rtf_window: list[tuple[float, float]] = []
         self._info: dict[str, Any] = {}
         self._new_episode(self.next_seed)
@@ -120,12 +163,12 @@ class SimService(Service):
         self.world.reset(seed=seed, options=opts)
         self.episode += 1
         self.seed = seed
-        self.next_seed = seed + 1
+        self.next_seed = (seed + 1) % (MAX_SEED + 1)
         self.done = False
         self.pending = []
         self.world.set_physical(0.0, 0.0, brake=False)
         self._wall0 = None
-        self._applied_ns = 0
+        self._applied_since = -1.0
         self._next = None
         self._rtf_window = []
         self._episode_wall_ns = time.monotonic_ns()
@@ -136,6 +179,11 @@ class SimService(Service):
         self.pub_state = self.publisher(self.topic(keys.STATE))
         self.pub_obs = self.publisher(self.topic(keys.OBSTACLES))
         self.cmd = self.inbox(self.topic(keys.CMD), DriveCommand)
+        # the mux's other inputs (the cmd inbox above is its controller input)
+        self.mux_in = {keys.CMD: self.cmd, **{c: self.inbox(self.topic(c), DriveCommand)
+                                            for c in (keys.SAFETY, keys.TELEOP, keys.DRIVE_ROS)}}
+        self.subscribe(self.topic(keys.ESTOP), None, self.mux.estop)
+        self.subscribe(keys.service_key(self.car, "safety", "verdict"), None, self._on_verdict)
         self.queryable("reset", self._q_reset)
         self.queryable("scenario", self._q_scenario)
         self._publish()
@@ -152,14 +200,8 @@ class SimService(Service):
         return box["reply"]
 
     def _q_reset(self, payload: bytes | None) -> dict:
-        data = json.loads(payload) if payload else {}
-        if not isinstance(data, dict):
-            raise ValueError("reset: payload must be a JSON object")
-        unknown = set(data) - {"seed", "heading"}
-        if unknown:
-            raise ValueError(f"reset: unknown field(s) {sorted(unknown)}")
-        if "seed" in data and not isinstance(data["seed"], int):
-            raise ValueError("reset.seed: must be an integer")
+        data = query_object(payload, "reset", {"seed", "heading"})
+        check_seed(data, "reset")
         if data.get("heading") not in (None, "default", "reversed"):
             raise ValueError("reset.heading: must be default or reversed")
         return self._request("reset", data)
@@ -167,12 +209,17 @@ class SimService(Service):
     def _q_scenario(self, payload: bytes | None) -> dict:
         if not payload:
             return {"scenario": self.world.scenario.name, "available": scenario_names()}
-        data = json.loads(payload)
-        if not isinstance(data, dict) or not isinstance(data.get("name"), str):
-            raise ValueError("scenario.name: required (a scenario name or TOML path)")
-        if "seed" in data and not isinstance(data["seed"], int):
-            raise ValueError("scenario.seed: must be an integer")
-        load_scenario(data["name"])  # a broken file is refused here, naming the field
+        data = query_object(payload, "scenario", {"name", "seed"})
+        check_seed(data, "scenario")
+        name = data.get("name")
+        if not isinstance(name, str) or not name or len(name) > 256 or "\0" in name:
+            raise ValueError("scenario.name: required (a scenario name or TOML path, at most 256 characters)")
+        if "/" not in name and not name.endswith(".toml") and name not in scenario_names():
+            raise ValueError(f"scenario.name: {name!r} is not one of {scenario_names()}")
+        try:
+            load_scenario(name)  # a broken file is refused here, naming the field
+        except OSError as e:
+            raise ValueError(f"scenario.name: {name}: {e.strerror or e}") from None
         return self._request("scenario", data)
 
     def _poll_requests(self) -> bool:
@@ -297,33 +344,81 @@ class SimService(Service):
         self._rtf_window = self._rtf_window[-50:]
         self._after_period()
 
+    def _on_verdict(self, raw: bytes) -> None:
+        """The safety supervisor judged a scan (lockstep waits for it, see the module doc)."""
+        try:
+            seq = int(json.loads(raw)["scan_seq"])
+        except (ValueError, KeyError, TypeError):
+            self.invalid += 1
+            return
+        with self._judged:
+            self._judged_seq = max(self._judged_seq, seq)
+            self._judged.notify_all()
+
+    def _feed_mux(self, when, skip: tuple[str, ...] = ()) -> list[tuple[float, str, DriveCommand]]:
+        """Inputs that arrived since the last call, as (time, channel, command); ``when(msg,
+        arrival_ns)`` gives the time in the mux's clock."""
+        out = []
+        for channel, box in self.mux_in.items():
+            if channel in skip:
+                continue
+            msg, arrival = box.latest()
+            if msg is not None and arrival != self._fed.get(channel):
+                self._fed[channel] = arrival
+                out.append((when(msg, arrival), channel, msg))
+        return out
+
+    @staticmethod
+    def _physical(d: Decision) -> tuple[float, float, bool]:
+        """(throttle, steering angle, brake) for a mux decision."""
+        if d.cmd is None:
+            return 0.0, 0.0, True
+        if d.brake:  # the safety supervisor's brake, with its steering angle
+            return 0.0, d.cmd.steering_angle, True
+        return d.cmd.throttle, d.cmd.steering_angle, False
+
     def _apply_newest(self, t0: float, dt: float, rtf: float) -> float:
         """Pick the command for the physics step starting at sim time t0: returns the offset
         (s) into the step at which a newly arrived command takes over (0 = from the start). The
         command is applied by :meth:`_set_command` (now if the offset is 0)."""
-        cmd, arrival_ns = self.cmd.latest()
-        now_ns = time.monotonic_ns()
-        if cmd is None or now_ns - arrival_ns > self.scfg.watchdog_s * 1e9:
-            if cmd is not None and not self.world.brake:
+        for t, channel, msg in self._feed_mux(lambda _m, arrival: arrival * 1e-9):
+            self.mux.offer(msg, channel, t)
+        d = self.mux.decide(time.monotonic())
+        if d.cmd is None:
+            if d.reason == "timeout" and not self.world.brake:
                 self.counters["watchdog_brakes"] += 1
             self._next = None
             self.world.set_physical(0.0, 0.0, brake=True)
             return 0.0
-        self._next = cmd
+        self._next = d
         rel = 0.0
-        if arrival_ns != self._applied_ns:
+        if d.since != self._applied_since:
             if rtf > 0:
-                t_arrival = self._sim0 + (arrival_ns * 1e-9 - self._wall0) * rtf
+                t_arrival = self._sim0 + (d.since - self._wall0) * rtf
                 rel = min(max(t_arrival - t0, 0.0), dt)
-            self._applied_ns = arrival_ns
+            self._applied_since = d.since
         if rel == 0.0:
             self._set_command()
         return rel
 
+    def _count_safety(self, d: Decision) -> None:
+        if d.reason == "safety" and not self._safety_on:
+            self.counters["safety_brakes"] += 1
+        self._safety_on = d.reason == "safety"
+
     def _set_command(self) -> None:
-        cmd = self._next
-        self.world.set_physical(cmd.throttle, cmd.steering_angle)
-        self.last_source = cmd.source
+        d = self._next
+        self._count_safety(d)
+        self.world.set_physical(*self._physical(d))
+        self.last_source = d.cmd.source
+
+    def _wait_verdict(self, seq: int) -> None:
+        """Lockstep with a safety supervisor: wait until it judged scan ``seq``."""
+        deadline = time.monotonic() + self.scfg.lockstep_timeout_s
+        with self._judged:
+            if not self._judged.wait_for(lambda: self._judged_seq >= seq or self.stop_event.is_set(),
+                                         max(0.0, deadline - time.monotonic())):
+                self.counters["safety_verdict_timeouts"] += 1
 
     def _step_lockstep(self) -> None:
         w = self.world
@@ -344,18 +439,53 @@ class SimService(Service):
                 self.seq -= 1  # same scan again (a lost sample must not dead-lock the run)
                 self._publish()
                 waited = time.monotonic()
-        self.last_source = cmd.source
-        self.pending.append((t_k + cmd.compute_ns * 1e-9, (cmd.throttle, cmd.steering_angle)))
+        if self.scfg.lockstep_safety:
+            self._wait_verdict(want)
+
+        # the mux runs on sim time, monotonic across episodes (the e-stop latch outlives them)
+        base = self.offset_ns * 1e-9
+        t_k += base
+
+        def when(msg: DriveCommand, _arrival: int) -> float:
+            # an answer to this scan counts from the scan plus its compute time; other inputs
+            # (teleop, ROS) from the start of this period
+            return t_k + msg.compute_ns * 1e-9 if msg.scan_seq == want else t_k
+
+        # the controller's input is its answer to this scan (taken above), not the newest sample
+        new = [(when(cmd, 0), keys.CMD, cmd)]
+        new += [e for e in self._feed_mux(when, skip=(keys.CMD,)) if e[1] != keys.SAFETY or e[2].scan_seq == want]
+        self.pending.extend(sorted(new, key=lambda e: e[0]))
         end = t_k + self.car_params.control_period_s - 1e-12
-        due = [(max(ta - t_k, 0.0), a) for ta, a in self.pending if ta < end]
-        self.pending = [(ta, a) for ta, a in self.pending if ta >= end]
-        # the command in force at the period start carries on until a due one switches
-        w.step((float(w.throttle[0]), float(w.steer_target[0])), schedule=due, physical=True)
+        due = sorted((e for e in self.pending if e[0] < end), key=lambda e: e[0])
+        self.pending = [e for e in self.pending if e[0] >= end]
+        # walk the period: the mux's decision changes at each due offer and when an input expires
+        schedule, prev, t, i = [], None, t_k, 0
+        while True:
+            while i < len(due) and due[i][0] <= t + 1e-12:
+                self.mux.offer(due[i][2], due[i][1], due[i][0])
+                i += 1
+            d = self.mux.decide(t)
+            self._count_safety(d)
+            act = self._physical(d)
+            if act != prev:
+                schedule.append((max(t - t_k, 0.0), act))
+                prev = act
+            if d.cmd is not None:
+                self.last_source = d.cmd.source
+            nxt = min(due[i][0] if i < len(due) else end, d.deadline)
+            if nxt >= end:
+                break
+            t = max(nxt, t + 1e-9)
+        # the command in force at the period start carries on until a scheduled one switches
+        w.step((float(w.throttle[0]), float(w.steer_target[0]), bool(w.brake)), schedule=schedule,
+               physical=True)
         self._after_period()
 
     # ------------------------------------------------------------------ status
     def info(self) -> dict[str, Any]:
-        return {**self._info, "last_source": self.last_source, **self.counters}
+        return {**self._info, "last_source": self.last_source, **self.counters,
+                "mux": {"estop": self.mux.estopped, "accepted_by": dict(self.mux.accepted_by),
+                        "refused": self.mux.refused}}
 
     def teardown(self) -> None:
         self.world.close()
