@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -44,18 +44,79 @@ class EgoStart(_Strict):
     """Initial forward speed (m/s); the friction-model wheel state starts at speed / wheel_radius."""
 
 
+Point = tuple[float, float]
+
+
+class StartTrigger(_Strict):
+    """When an obstacle starts moving (esmini TimeToCollisionCondition / CARLA
+    InTimeToArrivalToLocation). Until then it stands at its start."""
+
+    kind: Literal["time", "time_to_arrival", "distance"] = "time"
+    """time: ``value`` s of sim time; time_to_arrival: the ego's distance to ``point`` divided
+    by its current speed is <= ``value`` s; distance: the ego is within ``value`` m of ``point``."""
+    value: float = Field(0.0, ge=0)
+    point: Point = (0.0, 0.0)
+    """World-frame point (m) the ego's arrival is measured to (time_to_arrival, distance)."""
+
+
+class Sync(_Strict):
+    """Synchronised arrival (CARLA SyncArrival, esmini SynchronizeAction with the ego as master):
+    each control period the obstacle's speed is re-solved so that it reaches ``actor_point``
+    when the ego reaches ``ego_point`` at its current speed, clamped to [speed_min, speed_max];
+    released to constant speed once the ego is within ``release_distance_m`` or
+    ``release_time_s`` of its point (an ego that brakes or swerves late is not chased)."""
+
+    ego_point: Point
+    actor_point: Point
+    """A point on the obstacle's path (projected onto it)."""
+    speed_min: float = Field(0.5, ge=0)
+    speed_max: float = Field(2.0, gt=0)
+    release_distance_m: float = Field(1.0, ge=0)
+    release_time_s: float = Field(0.8, ge=0)
+
+    @model_validator(mode="after")
+    def _range(self) -> "Sync":
+        if self.speed_min > self.speed_max:
+            raise ValueError("speed_min: must not exceed speed_max")
+        return self
+
+
+class SpeedChange(_Strict):
+    """Past ``at_m`` metres along its path the obstacle changes speed towards ``speed`` at
+    ``accel`` m/s^2 (e.g. brakes to a stop in the crossing). Ends any synchronisation."""
+
+    at_m: float = Field(ge=0)
+    speed: float = Field(ge=0)
+    accel: float = Field(gt=0)
+
+
 class ObstacleSpec(_Strict):
-    """An obstacle car at constant speed (kinematic: it does not react)."""
+    """An obstacle car (kinematic: it does not react to contacts); see common/actors.py."""
 
     x: float
     y: float
     yaw_deg: float
     speed: float = Field(ge=0)
-    """m/s, held constant once moving."""
+    """m/s once moving (until a synchronisation or a speed change sets another)."""
     delay_s: float = Field(0.0, ge=0)
-    """Time (s) it stands still at its start before moving."""
-    path: list[tuple[float, float]] = []
+    """Time (s) it stands still at its start before moving (shorthand for a time trigger)."""
+    path: list[Point] = []
     """Optional waypoints (world frame) driven after the start point; empty = straight along yaw."""
+    start: StartTrigger | None = None
+    """Start trigger (default: time = delay_s)."""
+    sync: Sync | None = None
+    speed_changes: list[SpeedChange] = []
+
+    @model_validator(mode="after")
+    def _one_start(self) -> "ObstacleSpec":
+        if self.start is not None and self.delay_s > 0:
+            raise ValueError("delay_s: give either delay_s or [start], not both")
+        return self
+
+    @property
+    def conflict_timed(self) -> bool:
+        """Timed by the ego (a condition trigger or a synchronised arrival), not by the clock."""
+        return self.sync is not None or (self.start is not None and self.start.kind != "time")
 
 
 class Randomize(_Strict):
@@ -125,44 +186,36 @@ class Scenario(_Strict):
                    max(0.0, e.speed + rng.uniform(-r.ego_speed, r.ego_speed)))
         obs = []
         for o in self.obstacles:
-            obs.append(TrialObstacle(
-                x=o.x + rng.uniform(-r.obstacle_xy, r.obstacle_xy),
-                y=o.y + rng.uniform(-r.obstacle_xy, r.obstacle_xy),
-                yaw=math.radians(o.yaw_deg + rng.uniform(-r.obstacle_yaw_deg, r.obstacle_yaw_deg)),
-                speed=max(0.0, o.speed + rng.uniform(-r.obstacle_speed, r.obstacle_speed)),
-                delay_s=o.delay_s + rng.uniform(0, r.obstacle_delay_s),
-                path=np.asarray(o.path, dtype=np.float64).reshape(-1, 2)))
+            x = o.x + rng.uniform(-r.obstacle_xy, r.obstacle_xy)
+            y = o.y + rng.uniform(-r.obstacle_xy, r.obstacle_xy)
+            yaw = math.radians(o.yaw_deg + rng.uniform(-r.obstacle_yaw_deg, r.obstacle_yaw_deg))
+            speed = max(0.0, o.speed + rng.uniform(-r.obstacle_speed, r.obstacle_speed))
+            delay = rng.uniform(0, r.obstacle_delay_s)  # drawn for every obstacle: same stream
+            start = o.start or StartTrigger(kind="time", value=o.delay_s + delay)
+            obs.append(TrialObstacle(x=x, y=y, yaw=yaw, speed=speed, start=start, sync=o.sync,
+                                     speed_changes=tuple(o.speed_changes),
+                                     path=np.asarray(o.path, dtype=np.float64).reshape(-1, 2)))
         return Trial(scenario=self, ego=ego, obstacles=obs)
+
+    @property
+    def conflict_timed(self) -> bool:
+        """Some obstacle is timed by the ego (trigger or synchronised arrival)."""
+        return any(o.conflict_timed for o in self.obstacles)
 
 
 @dataclass(frozen=True)
 class TrialObstacle:
-    """A concrete obstacle of one trial (radians, SI)."""
+    """A concrete obstacle of one trial (radians, SI); common/actors.py moves it."""
 
     x: float
     y: float
     yaw: float
     speed: float
-    delay_s: float
-    path: np.ndarray
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     """(P, 2) waypoints after the start point; empty = straight along yaw."""
-
-    def pose_at(self, t: float) -> tuple[float, float, float]:
-        """Pose (x, y, yaw) at trial time t: still until delay_s, then constant speed."""
-        dist = max(0.0, t - self.delay_s) * self.speed
-        if len(self.path) == 0:
-            return (self.x + dist * math.cos(self.yaw), self.y + dist * math.sin(self.yaw), self.yaw)
-        pts = np.vstack([[self.x, self.y], self.path])
-        yaw = self.yaw
-        for a, b in zip(pts[:-1], pts[1:]):
-            seg = float(np.hypot(*(b - a)))
-            yaw = math.atan2(b[1] - a[1], b[0] - a[0])
-            if dist <= seg:
-                p = a + (b - a) * (dist / max(seg, 1e-12))
-                return float(p[0]), float(p[1]), yaw
-            dist -= seg
-        # past the last waypoint: continue straight along the last segment's direction
-        return (float(pts[-1][0] + dist * math.cos(yaw)), float(pts[-1][1] + dist * math.sin(yaw)), yaw)
+    start: StartTrigger = StartTrigger()
+    sync: Sync | None = None
+    speed_changes: tuple[SpeedChange, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ def _trial(world, ego, obstacles=()):
 
 
 def _still(x, y, yaw):
-    return TrialObstacle(x=x, y=y, yaw=yaw, speed=0.0, delay_s=0.0, path=np.zeros((0, 2)))
+    return TrialObstacle(x=x, y=y, yaw=yaw, speed=0.0)
 
 
 def test_urdf_has_solid_chassis_seen_by_rays(crossing):

@@ -26,6 +26,7 @@ import pybullet as p
 from pybullet_utils.bullet_client import BulletClient
 
 from racecav.common.lidar import LidarSpec, ray_angles, sanitize, scan_ranges
+from racecav.common.actors import ActorBatch
 from racecav.common.scenario import Scenario, Trial, load_scenario
 from racecav.common.vehicle import (CarParams, load_car, steer_from_action, steer_rate_limit,
                                     throttle_from_action, wheel_speed_step)
@@ -161,6 +162,7 @@ class BulletWorld:
         self.t = 0.0
         self.steps = 0
         self.trial: Trial | None = None
+        self.actors: ActorBatch | None = None
         self.collided = False
         self.contact_with: str = ""
         self.scan_ranges = np.full(self.spec.n_rays, np.inf, np.float32)
@@ -244,6 +246,7 @@ class BulletWorld:
         self.t, self.steps, self.collided, self.contact_with = 0.0, 0, False, ""
         sc = self.scenario
         car = self.car
+        self.actors = None
         if sc.traffic is not None:
             self.trial = None
             n = self.n_traffic + 1
@@ -271,6 +274,9 @@ class BulletWorld:
             self.agent = self._add_car(ex, ey, eyaw, "agent", car.agent_speed_scale)
             for o in self.trial.obstacles:
                 self._add_car(o.x, o.y, o.yaw, "obstacle", 1.0, kinematic=True)
+            # the same actor model as the fast world (one world here)
+            self.actors = ActorBatch(1, max(len(self.trial.obstacles), 1))
+            self.actors.load(0, self.trial.obstacles)
         n = len(self.cars)
         self.w = np.zeros(n)                 # friction-model wheel state (rad/s)
         self.steer = np.zeros(n)             # current steering angle (rad)
@@ -296,7 +302,7 @@ class BulletWorld:
         for _ in range(8):
             self._apply_motors()
             self.bc.stepSimulation()
-        self._kinematic_obstacles(0.0)
+        self._kinematic_obstacles()
         for c in self.cars:
             self.bc.resetBaseVelocity(c.body, [0, 0, 0], [0, 0, 0])
 
@@ -365,6 +371,8 @@ class BulletWorld:
 
     def begin_period(self) -> None:
         """Start of a control period: the traffic driver chooses the obstacle cars' actions."""
+        if self.actors is not None:  # scenario triggers and synchronised speeds
+            self.actors.control(self.agent_state()[None, :4])
         if self.driver is not None and self.n_traffic:
             act = np.asarray(self.driver.act(self._traffic_obs()), np.float64).reshape(self.n_traffic, -1)
             self.traffic_brake[1:] = act[:, 2] > 0.5 if act.shape[1] > 2 else False
@@ -392,7 +400,9 @@ class BulletWorld:
         """Motors to the actuator states, kinematic obstacles, one Bullet step, contacts."""
         self._apply_motors()
         self.t += self.car.physics_dt
-        self._kinematic_obstacles(self.t)
+        if self.actors is not None:
+            self.actors.advance(self.car.physics_dt)
+        self._kinematic_obstacles()
         self.bc.stepSimulation()
         if not self.collided:
             self._check_contacts()
@@ -421,11 +431,13 @@ class BulletWorld:
                                          targetVelocities=[wv] * len(c.driven),
                                          forces=[self.car.wheel_max_torque] * len(c.driven))
 
-    def _kinematic_obstacles(self, t: float) -> None:
-        if self.trial is None:
+    def _kinematic_obstacles(self) -> None:
+        """Scenario obstacles to the actor model's poses."""
+        if self.actors is None:
             return
-        for c, o in zip(self.cars[1:], self.trial.obstacles):
-            x, y, yaw = o.pose_at(t)
+        act = self.actors
+        for a, c in enumerate(self.cars[1:]):
+            x, y, yaw = act.x[0, a], act.y[0, a], act.yaw[0, a]
             # Bullet's base position is the base's centre of mass, com_height above the car frame
             self.bc.resetBasePositionAndOrientation(c.body, [x, y, self.car.com_height],
                                                     self.bc.getQuaternionFromEuler([0, 0, yaw]))
@@ -513,10 +525,8 @@ class BulletWorld:
         origin = np.asarray(pos) - R @ np.array([0.0, 0.0, self.car.com_height])
         yaw = math.atan2(R[1, 0], R[0, 0])
         lin, ang = bc.getBaseVelocity(self.cars[i].body)
-        if self.cars[i].kinematic and self.trial is not None:
-            o = self.trial.obstacles[i - 1]
-            v = o.speed if self.t >= o.delay_s else 0.0
-            return np.array([origin[0], origin[1], yaw, v, 0.0, 0.0])
+        if self.cars[i].kinematic and self.actors is not None:
+            return np.array([origin[0], origin[1], yaw, self.actors.v[0, i - 1], 0.0, 0.0])
         vx = lin[0] * math.cos(yaw) + lin[1] * math.sin(yaw)
         vy = -lin[0] * math.sin(yaw) + lin[1] * math.cos(yaw)
         return np.array([origin[0], origin[1], yaw, vx, vy, ang[2]])

@@ -136,7 +136,18 @@ class FastWorld:
                  heading: str = "default", driver="centerline", obstacle_lidar: bool | None = None,
                  agent_speed_scale: float | None = None, control_period: float | None = None,
                  physics_substeps: int | None = None, seed: int | None = None,
-                 parallel: bool = False):
+                 parallel: bool = False, scenarios=None):
+        self.scenarios = list(scenarios or [])
+        if self.scenarios:
+            # scenario episodes: the ego and the scenario's kinematic actors (common/actors.py)
+            worlds = {sc.world for sc in self.scenarios}
+            if len(worlds) != 1:
+                raise ValueError(f"scenarios: one world per FastWorld, got {sorted(worlds)}")
+            if any(sc.traffic is not None or sc.ego is None for sc in self.scenarios):
+                raise ValueError("scenarios: only scenarios with an [ego] and [[obstacles]] (no [traffic])")
+            world = worlds.pop()
+            n_obstacles = max(1, max(len(sc.obstacles) for sc in self.scenarios))
+            driver = None
         if isinstance(world, str):
             from racecav.common.world import load_world
 
@@ -173,7 +184,7 @@ class FastWorld:
         self.chunks = K.face_chunks(self.faces, 4 * WALLS_PER_CHUNK)
         # worlds without a centerline (intersection, open floor): no traffic, no random resets
         self.cl = dense_centerline(world) if world.centerline is not None else np.zeros((1, 4))
-        if world.centerline is None and n_obstacles:
+        if world.centerline is None and n_obstacles and not self.scenarios:
             raise ValueError(f"n_obstacles: world {world.name!r} has no centerline for traffic")
         self.cl_ds = float(np.hypot(*(self.cl[1, :2] - self.cl[0, :2]))) if len(self.cl) > 1 else 1.0
         self.lat_max = max(0.0, 0.5 * float(world.lane_width) - 0.5 * car.width - 0.15)
@@ -214,6 +225,21 @@ class FastWorld:
         self.respawns = 0
         self.bad_actions = 0  # non-finite agent actions replaced by 0 (counted)
         self.rng = np.random.default_rng(seed)
+        # progress (m): along the centerline in the agent's direction (traffic), or along the
+        # ego's initial heading (scenario episodes)
+        self.prog = f(N)
+        self.start_pose = f((N, 3))
+        self.time_limit = np.full(N, np.inf)   # scenario episodes: each scenario's duration
+        self.min_progress = f(N)
+        self.scenario_index = np.full(N, -1, dtype=np.int64)
+        self.collided = np.zeros(N, dtype=bool)
+        self.actors = None
+        if self.scenarios:
+            from racecav.common.actors import ActorBatch
+
+            self.actors = ActorBatch(N, n_obstacles)
+            self.dynamic = np.zeros((N, C), dtype=bool)  # only the ego is integrated
+            self.dynamic[:, 0] = True
 
     def set_bicycle(self, b) -> None:
         """Use single-track parameters ``b`` (BicycleParams or any object with its fields)."""
@@ -240,6 +266,11 @@ class FastWorld:
         envs = np.flatnonzero(envs) if np.asarray(envs).dtype == bool else np.asarray(envs, dtype=np.int64)
         if envs.size == 0:
             return
+        self.prog[envs] = 0.0
+        self.collided[envs] = False
+        if self.actors is not None:
+            self._place_scenarios(envs)
+            return
         C = self.x.shape[1]
         u = self.rng.random((envs.size, 1 + 5 * C))
         for i, n in enumerate(envs):
@@ -254,6 +285,36 @@ class FastWorld:
         self.wall_hit[envs] = False
         self.car_hit[envs] = -1
         self._scan(envs)
+
+    def _place_scenarios(self, envs: np.ndarray) -> None:
+        """Draw a scenario and a trial for each world of ``envs``; place the ego and actors."""
+        scale = self.speed_scale[0, 0]
+        for n in envs:
+            k = int(self.rng.integers(len(self.scenarios)))
+            sc = self.scenarios[k]
+            trial = sc.sample(self.rng)
+            ex, ey, eyaw, ev = trial.ego
+            self.scenario_index[n] = k
+            self.time_limit[n] = sc.duration_s
+            self.min_progress[n] = sc.success.min_progress_m
+            self.start_pose[n] = ex, ey, eyaw
+            self.x[n, 0], self.y[n, 0], self.yaw[n, 0], self.v[n, 0] = ex, ey, eyaw, ev
+            self.w[n, 0] = ev / (self.car.wheel_radius * scale)
+            self.actors.load(int(n), trial.obstacles)
+            self.active[n, 1:] = self.actors.used[n]
+        self.delta[envs] = 0.0
+        self.delta_cmd[envs] = 0.0
+        self.beta[envs] = 0.0
+        self.r[envs] = 0.0
+        self.time[envs] = 0.0
+        self.wall_hit[envs] = False
+        self.car_hit[envs] = -1
+        self._actors_to_cars()
+        self._scan(envs)
+
+    def _actors_to_cars(self) -> None:
+        a = self.actors
+        self.x[:, 1:], self.y[:, 1:], self.yaw[:, 1:], self.v[:, 1:] = a.x, a.y, a.yaw, a.v
 
     def set_state(self, env: int, car: int = 0, *, x=None, y=None, yaw=None, v=None, w=None,
                   delta=None) -> None:
@@ -294,18 +355,25 @@ class FastWorld:
             self.bad_actions += int((~np.isfinite(a)).any(axis=1).sum())
             a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=-1.0)
         self.actions[:, 0] = a
-        if self.n_cars > 1:
+        if self.actors is not None:
+            self.actors.control(self.agent_state)
+        elif self.n_cars > 1:
             self.actions[:, 1:] = self.driver(self)
         car = self.car
         T = vehicle_mod.throttle_from_action(self.actions[..., 0])
         target = vehicle_mod.steer_from_action(self.actions[..., 1], car)
         self.wall_hit[:] = False
         self.car_hit[:] = -1
+        scenario = self.actors is not None
+        dynamic = self.dynamic if scenario else self.active
         for k in range(self.substeps):
+            if scenario:  # actors first, as the PyBullet backend moves them before its step
+                self.actors.advance(self.dt)
+                self._actors_to_cars()
             self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
             self.delta_cmd = vehicle_mod.steer_rate_limit(self.delta_cmd, target, self.dt, car)
             K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
-                        self.delta_cmd, self.w, self.speed_scale, self.active, car.wheel_radius,
+                        self.delta_cmd, self.w, self.speed_scale, dynamic, car.wheel_radius,
                         car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
                         self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub,
                         self.scrub_lat, V_KIN, self.dt, self.c_speed_inv, self.heading_c4,
@@ -313,15 +381,23 @@ class FastWorld:
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
                        self.corners, self.hx, self.hy, self.wall_r,
-                       self.check_all if k == self.substeps - 1 else self.check_agent,
+                       self.check_all if k == self.substeps - 1 and not scenario else self.check_agent,
                        self.wall_hit, self.car_hit)
         K.wrap_angles(self.yaw)
         self.time += self.control_period
         collided = self.wall_hit[:, 0] | (self.car_hit[:, 0] >= 0)
-        respawned = self._respawn_obstacles(collided)
-        # every car's centerline station, by a local search (traffic, progress): a global
-        # nearest point would jump between the arms of a crossing (figure eight)
-        K.nearest_index(self.x, self.y, self.cl, self.cl_idx, 10, 40)
+        self.collided |= collided
+        if scenario:
+            respawned = 0
+        else:
+            respawned = self._respawn_obstacles(collided)
+            # every car's centerline station, by a local search (traffic, progress): a global
+            # nearest point would jump between the arms of a crossing (figure eight)
+            s_prev = self.cl_idx[:, 0] * self.cl_ds
+            K.nearest_index(self.x, self.y, self.cl, self.cl_idx, 10, 40)
+            lap = len(self.cl) * self.cl_ds
+            ds = (self.cl_idx[:, 0] * self.cl_ds - s_prev + lap / 2) % lap - lap / 2
+            self.prog += -ds if self.heading == "reversed" else ds
         self._scan_all(self.observe)
         a_d = np.clip(a[:, 1], -1.0, 1.0)
         info = {"wall": self.wall_hit[:, 0].copy(), "car": self.car_hit[:, 0].copy(),
@@ -379,3 +455,19 @@ class FastWorld:
     def agent_state(self) -> np.ndarray:
         """(N, 4) agent x, y, yaw, v."""
         return np.stack([self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.v[:, 0]], axis=1)
+
+    def progress(self) -> np.ndarray:
+        """(N,) ego progress (m) since the reset: along the centerline in its driving direction
+        (traffic episodes, accumulated over laps), else along its initial heading."""
+        if self.actors is None:
+            return self.prog.copy()
+        x0, y0, yaw0 = self.start_pose.T
+        return (self.x[:, 0] - x0) * np.cos(yaw0) + (self.y[:, 0] - y0) * np.sin(yaw0)
+
+    def success(self) -> np.ndarray:
+        """(N,) no contact since the reset and at least the scenario's minimum progress."""
+        return ~self.collided & (self.progress() >= self.min_progress)
+
+    def obstacles(self) -> np.ndarray:
+        """(N, C-1, 4) x, y, yaw, speed of the obstacle cars (parked slots far away)."""
+        return np.stack([self.x[:, 1:], self.y[:, 1:], self.yaw[:, 1:], self.v[:, 1:]], axis=-1)
