@@ -266,6 +266,20 @@ class Service:
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
+    def watch_alive(self, service: str, callback: Callable[[str, bool], None]) -> None:
+        """Follow ``service``'s liveliness token on this car ("*": every service's):
+        ``callback(name, True)`` when it appears (or already exists), ``callback(name, False)``
+        when it vanishes. A process that dies (kill -9,
+        crash) loses its TCP link and the router withdraws its token at once: this is how a
+        consumer learns of a dead producer in milliseconds rather than after a timeout."""
+        key = keys.alive_key(self.car, service)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            with self.guard(f"liveliness {service}"):
+                callback(str(sample.key_expr).split("/")[2], sample.kind != zenoh.SampleKind.DELETE)
+
+        self._declared.append(self.session.liveliness().declare_subscriber(key, on_sample, history=True))
+
     def queryable(self, leaf: str, handler: Callable[[bytes | None], Message | dict]) -> None:
         """Declare racecav/<car>/<service>/<leaf>; ``handler(payload)`` returns the reply (a
         Message, encoded; or a JSON-able dict). An exception becomes a reply error: a

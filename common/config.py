@@ -138,6 +138,14 @@ class ActuatorConfig(Section):
     """Source accepted on the drive_ros key (ROS 2 /drive), between teleop and the controller."""
     ros_timeout_s: float = Field(0.25, gt=0)
     """Timeout of the ROS drive input (ackermann_mux uses 0.2 s)."""
+    state_dir: Path | None = None
+    """Where the e-stop latch is kept across restarts (file ``estop-<car>.json``). None: systemd's
+    $STATE_DIRECTORY (the unit's StateDirectory=racecav, /var/lib/racecav) or
+    ~/.local/state/racecav. Design: docs/reliability.md."""
+    follow_liveliness: bool = True
+    """Brake the moment the controller's liveliness token (racecav/<car>/<controller>/alive)
+    vanishes (a dead process: ~ms), instead of waiting for timeout_s (the backstop for a live
+    but silent controller)."""
     rate_hz: float = Field(50.0, gt=0)
     """Period at which the current command (or neutral) is re-sent; the VESC drops a motor
     that hears nothing for its app timeout."""
@@ -195,7 +203,7 @@ class SimConfig(Section):
     wait_for_controller: bool = True
     """Realtime: an episode's clock starts when the first command after its reset arrives (its
     first scan is republished every 0.5 s until then), so a trial never starts uncontrolled."""
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     """Seed of the first episode; episode k uses seed + k unless a reset names one."""
     on_end: Literal["hold", "reset"] = "hold"
     """At contact or the end of the trial: hold (stop stepping, report done) or start the next
@@ -214,6 +222,46 @@ class SimConfig(Section):
     """Lockstep: also wait for the safety supervisor's verdict on each scan before stepping, so
     its brake applies to the scan it answers (set when ``racecav safety`` runs, e.g. ``racecav
     eval --safety on``)."""
+
+
+class SafetyConfig(Section):
+    """The emergency-brake supervisor (``racecav safety``): per-ray instantaneous time to
+    collision from each scan and the ego speed; design in docs/controllers.md."""
+
+    car: str = "slash"
+    """Car file: lidar mount and body box (the lidar-to-bumper distance of each ray)."""
+    threshold_s: float = Field(0.4, gt=0)
+    """Brake when the scan's iTTC (see min_rays) is below this for debounce_scans scans in a row.
+    0.4 s at 2.7 m/s is 1.1 m of gap; braking from 2.7 m/s takes ~0.3 s (locked wheels)."""
+    debounce_scans: int = Field(2, ge=1)
+    """Consecutive scans below the threshold before braking (1 = no debounce)."""
+    min_rays: int = Field(2, ge=1)
+    """A scan's iTTC is its min_rays-th smallest ray value: one spurious ray does not brake."""
+    release_s: float = Field(0.8, gt=0)
+    """Hysteresis: release when the scan's iTTC is above this (or the car is stopped) ..."""
+    release_scans: int = Field(2, ge=1)
+    """... for this many scans in a row ..."""
+    min_brake_s: float = Field(0.3, ge=0)
+    """... and the brake has lasted at least this long (scan time)."""
+    min_speed_mps: float = Field(0.1, ge=0)
+    """Below this ego speed nothing is braked (a car standing at a wall may drive away)."""
+    eps_mps: float = Field(0.01, gt=0)
+    """Closing speeds below this count as this (iTTC = gap / max(v cos theta, eps))."""
+    lateral_margin_m: float = Field(0.1, ge=0)
+    """False-brake candidate: a brake whose rays all hit outside the car's straight-ahead swept
+    box widened by this (m) on each side (e.g. a wall beside a corridor, a bend)."""
+    ego_state: Literal["auto", "state", "model"] = "auto"
+    """Ego speed source, as the baseline's: the state key while fresh, else the commanded
+    throttle through the car model (services/baseline/ego.py)."""
+    max_state_age_s: float = Field(0.3, gt=0)
+    """A VehicleState older than this (wall clock) is not used."""
+    initial_speed: float = Field(1.0, ge=0)
+    """Model speed (m/s) before any state or command is known."""
+    max_scan_age_s: float = Field(0.25, gt=0)
+    """A real scan whose stamp is older than this is not judged (counted stale)."""
+    steer_timeout_s: float = Field(0.25, gt=0)
+    """The brake command keeps the controller's steering angle if its last command is younger
+    than this, else it centres the wheels."""
 
 
 class EnvConfig(Section):
@@ -423,6 +471,7 @@ class Config(Section):
     sim: SimConfig = SimConfig()
     policy: PolicyConfig = PolicyConfig()
     baseline: BaselineConfig = BaselineConfig()
+    safety: SafetyConfig = SafetyConfig()
     ros2: Ros2Config = Ros2Config()
 
     def digest(self) -> str:

@@ -30,7 +30,7 @@ from racecav.common import keys
 from racecav.common.bus import Service
 from racecav.common.config import Config
 from racecav.common.lidar import LidarSpec
-from racecav.common.messages import DriveCommand, Scan
+from racecav.common.messages import INT64_MAX, DriveCommand, Scan
 from racecav.common.vehicle import CarParams, steer_from_action, throttle_from_action
 
 GEOMETRY_TOL = 1e-4
@@ -60,6 +60,7 @@ def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams,
     a_t = float(np.clip(a_throttle, -1.0, 1.0))
     a_s = float(np.clip(a_steer, -1.0, 1.0))
     stamp = time.monotonic_ns() if scan.source == "real" else scan.stamp_ns + compute_ns
+    stamp = min(stamp, INT64_MAX)  # a scan stamped at the very end of int64 must not overflow ours
     return DriveCommand(stamp_ns=stamp, seq=seq, source=source, a_throttle=a_t, a_steer=a_s,
                         throttle=float(throttle_from_action(a_t)),
                         steering_angle=float(steer_from_action(a_s, car)),

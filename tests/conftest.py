@@ -45,6 +45,8 @@ def spawn(router, tmp_path):
 
     def _spawn(*args: str, env: dict | None = None) -> subprocess.Popen:
         log = tmp_path / f"{args[0]}-{len(started)}.log"
+        # the actuator's e-stop latch file: per test, never the user's (tests run concurrently)
+        env = {"RACECAV_ACTUATOR__STATE_DIR": str(tmp_path / "state"), **(env or {})}
         p = procs.start(list(args), procs.bus_env(router, extra=env), log)
         p.log_path = log  # type: ignore[attr-defined]
         started.append(p)

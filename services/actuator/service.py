@@ -5,6 +5,12 @@ clears), .../safety (the safety supervisor's brake), .../teleop (overrides), ...
 /drive), .../cmd (the configured controller only). Every decision is in
 :mod:`racecav.services.actuator.control`; this module wires it to the bus and the serial port.
 
+E-stop across restarts (:mod:`racecav.common.estop`): the latch is written to
+``<state_dir>/estop-<car>.json`` and also kept by the router; the actuator starts latched if
+either says so, until exactly ``clear`` arrives. Fail-safe: the controller's liveliness token
+vanishing (a dead process) drops its command at once (``follow_liveliness``); ``timeout_s``
+stays the backstop for a live but silent controller.
+
 Timing: a fresh command is forwarded as soon as it arrives; the current command (or neutral) is
 re-sent at rate_hz; the loop also wakes exactly when the command in force goes stale, so the
 motor is neutralised timeout_s after the last command, not up to a period later.
@@ -24,6 +30,8 @@ import serial
 from racecav.common.bus import Service
 from racecav.common.codec import DecodeError, decode
 from racecav.common.config import Config
+from racecav.common import keys
+from racecav.common.estop import LatchFile, is_clear
 from racecav.common.keys import CMD, DRIVE_ROS, ESTOP, SAFETY, TELEOP
 from racecav.common.messages import DriveCommand
 from racecav.services.actuator import vesc_protocol as vp
@@ -122,6 +130,8 @@ class ActuatorService(Service):
         self._next_send = 0.0
         self._next_poll = 0.0
         self.link: VescLink | None = None
+        self._serial_error = ""
+        self.latch = LatchFile(self.acfg.state_dir, self.car)
 
     def setup(self) -> None:
         from racecav.common.vehicle import load_car
@@ -138,6 +148,37 @@ class ActuatorService(Service):
             self.subscribe(self.topic(channel), None, lambda raw, c=channel: self._on_cmd(raw, c))
         self.subscribe(self.topic(ESTOP), None, self._on_estop)
         self.queryable("values", lambda _p: dict(self.values))
+        self._start_latch()
+        self.controller_alive: bool | None = None
+        self.controller_lost = 0
+        if self.acfg.follow_liveliness:
+            self.watch_alive(self.acfg.controller, self._on_controller_alive)
+
+    def _start_latch(self) -> None:
+        """Start latched if the latch file or the router says so (module docstring)."""
+        why = []
+        rec = self.latch.load()
+        if rec is not None:
+            why.append(f"latch file {self.latch.path}")
+        try:
+            for reply in self.session.get(keys.service_key(self.car, "router", "estop"), timeout=0.5):
+                if reply.ok is not None and json.loads(reply.ok.payload.to_bytes()).get("latched") is True:
+                    why.append("router")
+        except Exception as e:  # no racecav router (zenohd): the file is the only copy
+            self.log.debug("router estop query: %s", e)
+        if why:
+            self.mux.estop(b"latched at start")
+            self.latch.save(True, "latched at start: " + ", ".join(why))
+            self.log.warning("e-stop latched at start (%s): publish exactly 'clear' on %s to drive",
+                             ", ".join(why), self.topic(ESTOP))
+
+    def _on_controller_alive(self, _name: str, alive: bool) -> None:
+        if not alive and self.controller_alive is not False:
+            self.controller_lost += 1
+            self.mux.lost(CMD)
+            self._record_error(f"controller {self.acfg.controller}: liveliness lost, braking")
+            self._notify()
+        self.controller_alive = alive
 
     # --- callbacks (Zenoh threads: short, never block) ------------------------------------------
 
@@ -155,9 +196,14 @@ class ActuatorService(Service):
         self._notify()
 
     def _on_estop(self, raw: bytes) -> None:
+        was = self.mux.estopped
         self.mux.estop(raw)
-        self.log.warning("e-stop %s", "latched" if self.mux.estopped else "cleared")
-        self._notify()
+        self._notify()  # brake first, then the disk
+        if self.mux.estopped != was or (self.mux.estopped and self.latch.error):
+            self.latch.save(not is_clear(raw), repr(bytes(raw[:40])))
+            # transitions only: a flood of e-stop payloads must not flood the log
+            self._rlog.warning(f"estop {self.mux.estopped}", f"e-stop {'latched' if self.mux.estopped else 'cleared'}"
+                               + (f" (latch file not written: {self.latch.error})" if self.latch.error else ""))
 
     def _notify(self) -> None:
         with self._wake:
@@ -173,6 +219,9 @@ class ActuatorService(Service):
     # --- loop -------------------------------------------------------------------------------------
 
     def step(self) -> None:
+        if self.link.last_error and self.link.last_error != self._serial_error:
+            self._record_error(f"serial: {self.link.last_error}")  # e.g. a missing port, logged once
+        self._serial_error = self.link.last_error
         now = time.monotonic()
         deadline = self.decision.deadline if self.decision else now
         wake = min(self._next_send, deadline, self._next_poll if self.acfg.values_hz else now + 1.0)
@@ -204,6 +253,9 @@ class ActuatorService(Service):
                     malformed=self.mux.malformed if self.link else 0,
                     frames_sent=self.link.frames_sent if self.link else 0,
                     serial_error=self.link.last_error if self.link else "",
+                    controller_alive=getattr(self, "controller_alive", None),
+                    controller_lost=getattr(self, "controller_lost", 0),
+                    latch_file=str(self.latch.path), latch_error=self.latch.error,
                     values=self.values, values_age_s=round(time.monotonic() - self._values_t, 3) if self._values_t else None)
 
     def teardown(self) -> None:
