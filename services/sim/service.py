@@ -184,6 +184,7 @@ class SimService(Service):
                                             for c in (keys.SAFETY, keys.TELEOP, keys.DRIVE_ROS)}}
         self.subscribe(self.topic(keys.ESTOP), None, self.mux.estop)
         self.subscribe(keys.service_key(self.car, "safety", "verdict"), None, self._on_verdict)
+        self.watch_alive("*", self._on_alive)  # the actuator's fail-safe: a dead controller brakes at once
         self.queryable("reset", self._q_reset)
         self.queryable("scenario", self._q_scenario)
         self._publish()
@@ -367,6 +368,14 @@ class SimService(Service):
                 self._fed[channel] = arrival
                 out.append((when(msg, arrival), channel, msg))
         return out
+
+    def _on_alive(self, name: str, alive: bool) -> None:
+        """Liveliness callback: the controller whose command is in force died => drop it now
+        (as the actuator does), not after watchdog_s."""
+        cmd = self.cmd.latest()[0]
+        if not alive and cmd is not None and cmd.source == name:
+            self.mux.lost(keys.CMD)
+            self.counters["controller_lost"] = self.counters.get("controller_lost", 0) + 1
 
     @staticmethod
     def _physical(d: Decision) -> tuple[float, float, bool]:
