@@ -421,6 +421,8 @@ class ScanStream:
         self._last_raw: float | None = None  # raw angle of the last emitted sample (wrap detection)
         self._gap = False  # bytes were skipped since the last good capsule
         self._span = 0.0  # running estimate of the angle between consecutive capsules
+        n = DENSE_SAMPLES if self.answer_type == ANS_DENSE else EXPRESS_SAMPLES
+        self._frac = np.arange(n) / n  # sample positions within a capsule's span
 
     def reset(self) -> None:
         """Forget partial data (after a restart of the scan)."""
@@ -523,18 +525,13 @@ class ScanStream:
             self.stats.angle_jumps += 1
             return None
         self._span = span if not self._span else 0.9 * self._span + 0.1 * span
+        raw = prev_start + span * self._frac  # evenly spread between the two start angles
         if self.answer_type == ANS_DENSE:
-            n = DENSE_SAMPLES
-            dist = dense_distances(prev)
-            raw = prev_start + span * np.arange(n) / n
-            angle = raw
-        else:
-            n = EXPRESS_SAMPLES
-            dist, off = express_samples(prev)
-            raw = prev_start + span * np.arange(n) / n
-            angle = raw - off  # the SDK: angle = raw - offset (q3 degrees)
-        raw = np.mod(raw, 360.0)
-        return (raw if angle is raw else np.mod(angle, 360.0)), dist, raw
+            raw = np.mod(raw, 360.0)
+            return raw, dense_distances(prev), raw
+        dist, off = express_samples(prev)
+        angle = np.mod(raw - off, 360.0)  # the SDK: angle = raw - offset (q3 degrees)
+        return angle, dist, np.mod(raw, 360.0)
 
     def _wraps(self, raw: np.ndarray) -> np.ndarray:
         """Mark samples whose raw angle went backwards by more than half a turn: a new revolution.
@@ -559,6 +556,11 @@ class Revolution:
     dist_mm: np.ndarray
     t_end: float = 0.0
     """Monotonic time (s) at which the last bytes of the revolution were read."""
+
+
+def _half_turn_away(rel: np.ndarray) -> bool:
+    """Whether any angle (relative to the cut) lies between 90 and 270 deg: re-arms the cut."""
+    return bool(np.any(np.abs(rel - 180.0) <= 90.0))
 
 
 class RevolutionAssembler:
@@ -604,11 +606,10 @@ class RevolutionAssembler:
         prev[0] = rel[0] if self._last is None else self._last
         prev[1:] = rel[:-1]
         self._last = float(rel[-1])
-        mid = (rel >= 90.0) & (rel <= 270.0)  # half a turn away from the cut: re-arms it
         out: list[Revolution] = []
         lo = 0
         for c in np.flatnonzero(prev - rel > 180.0):
-            if not (self._armed or mid[lo:c].any()):
+            if not (self._armed or _half_turn_away(rel[lo:c])):
                 continue  # the sweep stepped back across the cut: still the same turn
             self._armed = False
             if self._started:
@@ -622,7 +623,7 @@ class RevolutionAssembler:
             self._a, self._d = [], []
             self._started = True
             lo = c
-        self._armed = self._armed or bool(mid[lo:].any())
+        self._armed = self._armed or _half_turn_away(rel[lo:])
         if self._started:
             self._a.append(s.angle_deg[lo:])
             self._d.append(s.dist_mm[lo:])
