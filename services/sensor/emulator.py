@@ -7,6 +7,10 @@ start angles, and output paced like the device: a pty has no baud rate, so the e
 each capsule when the device would have finished sampling it (DenseBoost: 800 capsules/s,
 about 67 kB/s at 10 Hz, within the 100 kB/s of a 1 Mbaud 8N1 link).
 
+Express capsules (answer type 82, offered with ``modes=S2_MODES + (EXPRESS_MODE,)`` or
+``--express``) carry random per-sample angle offsets, as a real device's do, at least 1 deg on
+the samples just after 0 deg so that every turn tests cutting by the raw angle.
+
 Faults for testing the driver: garbage bytes, corrupt checksums, truncated capsules, a health
 error state, and unplug/replug (the pty is closed and the symlink the driver opens disappears,
 then a new pty appears under the same symlink, as udev does with /dev/rplidar).
