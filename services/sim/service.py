@@ -100,7 +100,7 @@ def query_object(payload: bytes, what: str, fields: set[str]) -> dict:
     """A query's JSON object payload with only ``fields``; ValueError naming what is wrong."""
     try:
         data = json.loads(payload) if payload else {}
-    except ValueError as e:  # not UTF-8 or not JSON
+    except (ValueError, RecursionError) as e:  # not UTF-8, not JSON, nested beyond the parser
         raise ValueError(f"{what}: payload is not JSON ({e})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{what}: payload must be a JSON object")
