@@ -313,7 +313,8 @@ def test_command_frames(make, want, decoded):
     assert crc16_bitwise(payload) == int.from_bytes(want[-3:-1], "big") == vp.crc16(payload)
     (p,) = vp.FrameParser().feed(want)
     c = vp.parse_command(p)
-    assert c.name == decoded[0] and (c.value == pytest.approx(decoded[1]) if decoded[1] is not None else c.value is None)
+    assert c.name == decoded[0]
+    assert c.value is None if decoded[1] is None else c.value == pytest.approx(decoded[1])
 
 
 # --- VESC: GET_VALUES as current firmware sends it -----------------------------------------------
