@@ -30,6 +30,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "policy": ("racecav.services.policy.service", "DRL policy controller: newest Scan -> numpy MLP -> DriveCommand"),
     "baseline": ("racecav.services.baseline.service", "MPC-APF baseline controller: lidar obstacles + casadi MPC -> DriveCommand"),
     "ros2": ("racecav.services.ros2.service", "ROS 2 mirror over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds): /scan /odom /drive_out out, /drive in (extra: ros2)"),
+    "record": ("racecav.services.record.record", "record the car's keys to one MCAP file: raw samples + ROS 2 /scan /odom /drive (extra: record)"),
+    "replay": ("racecav.services.record.replay", "replay a recorded run's scans into a running controller and compare its commands with the recorded ones"),
 }
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.

@@ -1,0 +1,122 @@
+"""``racecav record``: write a run to one MCAP file (raw bus samples + ROS 2 copies).
+
+A separate process subscribed to the car's keys: the control path (scan -> controller -> command)
+never waits for it. Zenoh's callback only appends the sample to a queue; the recorder's own loop
+writes the file (docs/benchmarks.md, record: the controller's latency with and without it).
+The file layout is :mod:`racecav.services.record.mcapfile`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import time
+from pathlib import Path
+from typing import Any
+
+from racecav.common import keys
+from racecav.common.bus import Service
+from racecav.common.config import Config
+
+EXAMPLES = """examples:
+  racecav record -o run.mcap                       # everything of the car until Ctrl-C
+  racecav record --keys scan cmd -o run.mcap       # only racecav/<car>/scan and /cmd
+  racecav record --duration 10 -o runs/a.mcap      # stop after 10 s
+  racecav replay run.mcap --lockstep               # then: feed its scans to a controller
+"""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-o", "--output", default="run.mcap", help="output MCAP file (default: run.mcap)")
+    p.add_argument("--keys", nargs="+", metavar="KEY",
+                   help="leaves under racecav/<car>/ (scan cmd state obstacles ...) or full key "
+                        "expressions (default: racecav/<car>/**, everything of the car)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--no-ros", action="store_true", help="raw samples only, no ROS 2 CDR copies")
+    p.add_argument("--name", default="record", help="service name (several recorders need different names)")
+    p.epilog = EXAMPLES
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+
+
+class Recorder(Service):
+    """Subscribes to key expressions and writes every sample to a run file.
+
+    :param cfg: whole configuration (bus: car and router).
+    :param output: the .mcap path.
+    :param exprs: key expressions to record.
+    :param duration_s: stop after this long (None: until stopped).
+    :param ros: write ROS 2 copies of scan/state/cmd.
+    """
+
+    def __init__(self, cfg: Config, output: str | Path, exprs: list[str], duration_s: float | None = None,
+                 ros: bool = True, name: str = "record"):
+        super().__init__(cfg, name)
+        from racecav.services.record.mcapfile import RunWriter
+
+        self.exprs, self.duration_s = exprs, duration_s
+        self.writer = RunWriter(output, self.car, ros=ros, car_params=cfg.ros2.car,
+                                metadata={"config_digest": cfg.digest(), "keys": " ".join(exprs)})
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._t0 = time.monotonic()
+
+    def setup(self) -> None:
+        for expr in self.exprs:
+            self._declared.append(self.session.declare_subscriber(expr, self._on_sample))
+
+    def _on_sample(self, sample) -> None:
+        # Zenoh's thread: no decoding, no file I/O, only a non-blocking append.
+        self._q.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+    def _drain(self, timeout: float | None) -> None:
+        try:
+            item = self._q.get(timeout=timeout) if timeout else self._q.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            key, payload, t = item
+            self.received += 1
+            try:
+                self.writer.write(key, payload, t)
+            except Exception as e:  # one bad sample must not cost the rest of the batch
+                self.invalid += 1
+                self._record_error(f"record {key}: {type(e).__name__}: {e}")
+            try:
+                item = self._q.get_nowait()
+            except queue.Empty:
+                return
+
+    def step(self) -> None:
+        self._drain(0.1)
+        if self.duration_s is not None and time.monotonic() - self._t0 >= self.duration_s:
+            self.request_stop()
+
+    def info(self) -> dict[str, Any]:
+        return {"file": str(self.writer.path), "messages": dict(self.writer.counts),
+                "bytes": self.writer.bytes, "queued": self._q.qsize()}
+
+    def close(self) -> None:
+        try:
+            super().close()  # no more callbacks after this
+        finally:
+            self._drain(None)
+            self.writer.close()
+            self.log.info("wrote %s: %s", self.writer.path,
+                          ", ".join(f"{k} {n}" for k, n in sorted(self.writer.counts.items())))
+
+
+def key_exprs(car: str, given: list[str] | None) -> list[str]:
+    """Key expressions from --keys: leaves go under racecav/<car>/, anything with a '/' is taken
+    as it is."""
+    if not given:
+        return [f"{keys.PREFIX}/{car}/**"]
+    return [k if "/" in k else keys.topic(car, k) for k in given]
+
+
+def run(args: argparse.Namespace, cfg: Config) -> int:
+    try:
+        rec = Recorder(cfg, args.output, key_exprs(cfg.bus.car, args.keys), args.duration,
+                       ros=not args.no_ros, name=args.name)
+    except (ImportError, OSError, ValueError) as e:
+        print(f"racecav record: {e}")
+        return 2
+    return rec.run()

@@ -1,0 +1,167 @@
+"""``racecav record`` / ``racecav replay``: one MCAP file per run that ROS tools can read, and a
+recorded lockstep run replayed into a fresh policy gives the same commands (and a different
+policy is caught)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mcap")
+pytest.importorskip("rosbags")
+
+from racecav.common import keys, procs  # noqa: E402
+from racecav.common.client import get_status  # noqa: E402
+from racecav.common.codec import decode, encode  # noqa: E402
+from racecav.common.messages import DriveCommand, Scan, VehicleState  # noqa: E402
+from racecav.services.record.mcapfile import RAW_ENCODING, RunFileError, RunWriter, read_raw  # noqa: E402
+from racecav.services.record.replay import load_run  # noqa: E402
+from tests.test_controllers_policy import random_policy_file  # noqa: E402
+
+# 10 s on an empty road: the run lasts its full duration whatever the policy does (no obstacle).
+TEN_SECONDS = """
+name = "empty-road-10s"
+world = "intersection"
+duration_s = 10.0
+[ego]
+x = -6.0
+y = 0.0
+yaw_deg = 0.0
+speed = 1.0
+[success]
+min_progress_m = 1.0
+"""
+
+
+def _scan(seq: int) -> Scan:
+    r = np.linspace(0.5, 11.0, 170, dtype=np.float32)
+    r[3] = np.inf
+    return Scan(stamp_ns=100_000_000 * seq, seq=seq, source="sim", angle_min=-math.pi / 4,
+                angle_max=math.pi / 4, angle_increment=math.pi / 2 / 169, range_min=0.1, range_max=12.0,
+                ranges=r)
+
+
+def test_run_file_layout_is_read_by_ros_tools(tmp_path):
+    """Raw samples come back byte for byte; the ROS copies decode with mcap-ros2-support's
+    dynamic decoder (built from the ros2msg schema text, not rosbags) and with rosbags'
+    reader (what `ros2 bag`'s MCAP storage reads); garbage on a key is kept raw, not copied."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    path = tmp_path / "run.mcap"
+    w = RunWriter(path, "car0")
+    sent = []
+    for i in range(3):
+        sent.append(("racecav/car0/scan", encode(_scan(i))))
+        sent.append(("racecav/car0/state", encode(VehicleState(stamp_ns=i, source="sim", x=i, y=1.0, yaw=0.3, vx=1.0))))
+        sent.append(("racecav/car0/cmd", encode(DriveCommand(stamp_ns=i, source="policy", a_throttle=0.5, a_steer=-0.2,
+                                                             throttle=0.5, steering_angle=-0.05, scan_seq=i))))
+    sent.append(("racecav/car0/estop", b"stop"))
+    sent.append(("racecav/car0/scan", b"\x93garbage"))
+    for n, (k, p) in enumerate(sent):
+        w.write(k, p, 1_000_000_000 + n)
+    w.close()
+
+    raw = read_raw(path)
+    assert [(s.key, s.payload) for s in raw] == sent
+
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        chans = {c.topic: c for c in summary.channels.values()}
+        assert chans["racecav/car0/scan"].message_encoding == RAW_ENCODING
+        assert chans["/scan"].message_encoding == "cdr" and "offered_qos_profiles" in chans["/scan"].metadata
+        assert {summary.schemas[c.schema_id].encoding for t, c in chans.items() if t.startswith("/")} == {"ros2msg"}
+        decoded = {}
+        for _s, ch, _m, msg in reader.iter_decoded_messages(topics=["/scan", "/odom", "/drive"]):
+            decoded.setdefault(ch.topic, []).append(msg)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert meta["racecav"]["car"] == "car0"
+    assert len(decoded["/scan"]) == 3  # the garbage scan got no copy
+    assert np.array_equal(np.asarray(decoded["/scan"][1].ranges, np.float32), _scan(1).ranges)
+    assert decoded["/odom"][2].pose.pose.position.x == 2.0
+    assert decoded["/drive"][0].drive.steering_angle == pytest.approx(-0.05)
+
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([path]) as r:
+        conns = {c.topic: c for c in r.connections}
+        assert conns["/scan"].msgtype == "sensor_msgs/msg/LaserScan" and conns["/scan"].msgcount == 3
+        _c, _t, data = next(iter(r.messages(connections=[conns["/odom"]])))
+        assert r.deserialize(data, "nav_msgs/msg/Odometry").twist.twist.linear.x == 1.0
+
+
+def _replay(env, *args) -> subprocess.CompletedProcess:
+    return subprocess.run(procs.racecav_cmd("replay", *args), env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_bad_run_files_are_named(tmp_path, router):
+    env = procs.bus_env(router)
+    missing = tmp_path / "nope.mcap"
+    r = _replay(env, str(missing))
+    assert r.returncode == 2 and str(missing) in r.stdout and "no such file" in r.stdout
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(b"not an mcap file at all" * 10)
+    r = _replay(env, str(garbage))
+    assert r.returncode == 2 and str(garbage) in r.stdout
+    with pytest.raises(RunFileError, match="cut.mcap"):
+        good = tmp_path / "good.mcap"
+        w = RunWriter(good, "car0")
+        for i in range(50):
+            w.write("racecav/car0/scan", encode(_scan(i)))
+        w.close()
+        (tmp_path / "cut.mcap").write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+        read_raw(tmp_path / "cut.mcap")
+
+
+def _wait(pred, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        time.sleep(0.1)
+    raise TimeoutError(what)
+
+
+def test_lockstep_run_replays_with_identical_commands(spawn, session, router, tmp_path):
+    scenario = tmp_path / "ten.toml"
+    scenario.write_text(TEN_SECONDS)
+    run = tmp_path / "run.mcap"
+    rec = spawn("record", "-o", str(run))
+    procs.wait_alive(session, "car0", "record", proc=rec)
+    sim = spawn("sim", "--scenario", str(scenario), "--mode", "lockstep")
+    procs.wait_alive(session, "car0", "sim", proc=sim)
+    pol = spawn("policy")
+    _wait(lambda: get_status(session, "car0", "sim").info.get("done"), 120, "the 10 s run did not finish")
+    procs.stop(pol)
+    procs.stop(sim)
+    time.sleep(0.3)
+    assert procs.stop(rec) == 0
+
+    _car, scans, recorded = load_run(run)
+    assert len(scans) >= 95  # 10 s at the 0.1 s control period
+    assert scans[-1].stamp_ns - scans[0].stamp_ns >= 9.4e9
+
+    env = procs.bus_env(router)
+    fresh = spawn("policy")
+    procs.wait_alive(session, "car0", "policy", proc=fresh)
+    r = _replay(env, str(run), "--lockstep", "--tolerance", "0", "--json", str(tmp_path / "rep.json"))
+    assert r.returncode == 0, r.stdout + r.stderr
+    import json
+
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert rep["scans"] == len(scans) and rep["identical"] == rep["compared"] == rep["answered"] == len(scans)
+    procs.stop(fresh)
+
+    # other weights on the same scans: the regression check fails and says by how much
+    other = spawn("policy", "--model", str(random_policy_file(tmp_path / "other.npz")))
+    procs.wait_alive(session, "car0", "policy", proc=other)
+    r = _replay(env, str(run), "--lockstep", "--tolerance", "0.001", "--json", str(tmp_path / "rep2.json"))
+    rep2 = json.loads((tmp_path / "rep2.json").read_text())
+    assert r.returncode == 1 and rep2["identical"] < rep2["compared"] and rep2["a_steer_max_abs_diff"] > 0.001
