@@ -66,6 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-dir", type=Path, default=OUT_DIR, help="where runs, logs and JSONL files go")
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"), help="--table: the document written")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--record", nargs="?", const=True, type=Path, metavar="DIR",
+                   help="write one MCAP run file per trial (racecav record; default DIR: "
+                        "OUT_DIR/mcap/SCENARIO-CONTROLLER); replay one with racecav replay")
 
 
 class Interrupted(Exception):
@@ -278,7 +281,10 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
     plot = args.plot or json_path.with_suffix(".png")
     error = None
     try:
-        with Harness(cfg, ctrl, args.mode, ref, args.out_dir / "logs" / stem, args.real_time_factor) as h:
+        record = getattr(args, "record", None)
+        record_dir = (args.out_dir / "mcap" / stem) if record is True else record
+        with Harness(cfg, ctrl, args.mode, ref, args.out_dir / "logs" / stem, args.real_time_factor,
+                     record_dir=record_dir) as h:
             res, error = run_trials(h, ref, path, trials, seed, jsonl, args.resume,
                                     bar=NoBar() if args.no_progress else None)
     except HarnessError as e:

@@ -222,11 +222,14 @@ class Harness:
     :param scenario: the first scenario (name or path), loaded when the sim starts.
     :param log_dir: where the processes' logs go.
     :param real_time_factor: realtime mode: sim seconds per wall second.
+    :param record_dir: if set, a ``racecav record`` process writes one MCAP file per trial there
+        (``<scenario>-<index>-seed<seed>.mcap``; what came before the first trial: setup.mcap).
     """
 
     def __init__(self, cfg: Config, controller: Controller, mode: str, scenario: str, log_dir: Path,
-                 real_time_factor: float = 1.0):
+                 real_time_factor: float = 1.0, record_dir: Path | None = None):
         self.cfg, self.ctrl, self.mode, self.log_dir = cfg, controller, mode, Path(log_dir)
+        self.record_dir = Path(record_dir) if record_dir is not None else None
         self.first_scenario, self.rtf = scenario, real_time_factor
         from racecav.common.vehicle import load_car
 
@@ -260,6 +263,9 @@ class Harness:
                 "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf)})
             self._start("sim", ["sim", "--scenario", str(self.first_scenario), "--mode", self.mode], env)
             self._start(self.ctrl.service, list(self.ctrl.args), env)
+            if self.record_dir is not None:  # a separate process: the control path never waits for it
+                self.record_dir.mkdir(parents=True, exist_ok=True)
+                self._start("record", ["record", "-o", str(self.record_dir / "setup.mcap")], env)
         except BaseException:
             self._stack.close()
             raise
@@ -311,6 +317,10 @@ class Harness:
         self._check_procs()
         wall0 = time.monotonic()
         try:
+            if self.record_dir is not None:  # this trial's samples go to their own file
+                name = f"{Path(self.scenario_ref).stem}-{index:03d}-seed{seed}.mcap"
+                query_message(self.session, self.car_name, "record", "rotate",
+                              {"path": str(self.record_dir / name)}, timeout=10.0)
             if self._need_scenario:
                 rep = query_message(self.session, self.car_name, "sim", "scenario",
                                     {"name": self.scenario_ref, "seed": seed}, timeout=30.0)

@@ -165,3 +165,20 @@ def test_lockstep_run_replays_with_identical_commands(spawn, session, router, tm
     r = _replay(env, str(run), "--lockstep", "--tolerance", "0.001", "--json", str(tmp_path / "rep2.json"))
     rep2 = json.loads((tmp_path / "rep2.json").read_text())
     assert r.returncode == 1 and rep2["identical"] < rep2["compared"] and rep2["a_steer_max_abs_diff"] > 0.001
+
+
+def test_eval_record_writes_one_file_per_trial(tmp_path):
+    """`racecav eval --record DIR`: one run file per trial holding exactly that trial's scans and
+    commands (the recorder switches files between trials)."""
+    import json
+
+    out, rec_dir = tmp_path / "eval", tmp_path / "mcap"
+    r = subprocess.run(procs.racecav_cmd("eval", "--scenario", "head-to-head", "--controller", "drl-reversed",
+                                         "--trials", "2", "--record", str(rec_dir), "--out-dir", str(out),
+                                         "--no-progress"), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    trials = [json.loads(line)["trial"] for line in (out / "head-to-head-drl-reversed.jsonl").read_text().splitlines()]
+    assert len(trials) == 2
+    for t in trials:
+        _car, scans, recorded = load_run(rec_dir / f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap")
+        assert len(scans) == t["steps"] and len(recorded) == t["commands"]

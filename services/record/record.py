@@ -38,6 +38,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
+ROTATE = object()
+"""Queue marker: switch to a new file at this point of the sample stream."""
+
+
 class Recorder(Service):
     """Subscribes to key expressions and writes every sample to a run file.
 
@@ -62,6 +66,19 @@ class Recorder(Service):
     def setup(self) -> None:
         for expr in self.exprs:
             self._declared.append(self.session.declare_subscriber(expr, self._on_sample))
+        self.queryable("rotate", self._on_rotate)
+
+    def _on_rotate(self, payload: bytes | None) -> dict[str, Any]:
+        """racecav/<car>/<name>/rotate {"path": P}: close the file, go on in P (one file per
+        trial: ``racecav eval --record``). Queued behind the samples already received, so every
+        sample that arrives after the reply goes to P."""
+        import json
+
+        path = json.loads(payload or b"{}").get("path")
+        if not isinstance(path, str) or not path:
+            raise ValueError('rotate: payload must be {"path": "new.mcap"}')
+        self._q.put((ROTATE, path, 0))
+        return {"file": path}
 
     def _on_sample(self, sample) -> None:
         # Zenoh's thread: no decoding, no file I/O, only a non-blocking append.
@@ -72,18 +89,33 @@ class Recorder(Service):
             item = self._q.get(timeout=timeout) if timeout else self._q.get_nowait()
         except queue.Empty:
             return
-        while True:
+        while item is not None:
             key, payload, t = item
-            self.received += 1
-            try:
-                self.writer.write(key, payload, t)
-            except Exception as e:  # one bad sample must not cost the rest of the batch
-                self.invalid += 1
-                self._record_error(f"record {key}: {type(e).__name__}: {e}")
-            try:
-                item = self._q.get_nowait()
-            except queue.Empty:
-                return
+            if key is ROTATE:
+                self._rotate(payload)
+            else:
+                self.received += 1
+                try:
+                    self.writer.write(key, payload, t)
+                except Exception as e:  # one bad sample must not cost the rest of the batch
+                    self.invalid += 1
+                    self._record_error(f"record {key}: {type(e).__name__}: {e}")
+            item = self._next()
+
+    def _next(self):
+        try:
+            return self._q.get_nowait()
+        except queue.Empty:
+            return None
+
+    def _rotate(self, path: str) -> None:
+        from racecav.services.record.mcapfile import RunWriter
+
+        old = self.writer
+        old.close()
+        self.writer = RunWriter(path, self.car, ros=old._conv is not None, car_params=self.cfg.ros2.car,
+                                metadata={"config_digest": self._config_digest, "keys": " ".join(self.exprs)})
+        self.log.info("closed %s, recording to %s", old.path, path)
 
     def step(self) -> None:
         self._drain(0.1)
