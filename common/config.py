@@ -94,8 +94,9 @@ class SensorConfig(Section):
     """Pause between motor start and SCAN (some S2 firmware refuses an early SCAN)."""
     data_timeout_s: float = Field(1.0, gt=0)
     """No scan data for this long => reset and restart the scan."""
-    reconnect_s: float = Field(0.5, gt=0)
-    """Retry period for reopening a vanished port (USB unplugged)."""
+    reconnect_s: float = Field(0.1, gt=0)
+    """Retry period for reopening a vanished port (USB unplugged): one open() of a missing path
+    is cheap, and this bounds the replug -> first scan time (<= 1 s: docs/reliability.md)."""
     max_gap_deg: float = Field(6.0, ge=0)
     """Widest hole between good samples that preprocessing fills by interpolation (deg)."""
     spike_abs_m: float = Field(0.3, ge=0)
@@ -238,15 +239,23 @@ class SafetyConfig(Section):
     min_rays: int = Field(2, ge=1)
     """A scan's iTTC is its min_rays-th smallest ray value: one spurious ray does not brake."""
     release_s: float = Field(0.8, gt=0)
-    """Hysteresis: release when the scan's iTTC is above this (or the car is stopped) ..."""
+    """Hysteresis: release when the scan's iTTC at the speed max(v, release_probe_mps) is above
+    this ..."""
     release_scans: int = Field(2, ge=1)
     """... for this many scans in a row ..."""
+    release_probe_mps: float = Field(1.0, ge=0)
+    """A braked car is released only when it could drive off at this speed: a stopped car stays
+    braked in front of a wall or a car still crossing (0: release at standstill)."""
     min_brake_s: float = Field(0.3, ge=0)
     """... and the brake has lasted at least this long (scan time)."""
     min_speed_mps: float = Field(0.1, ge=0)
     """Below this ego speed nothing is braked (a car standing at a wall may drive away)."""
     eps_mps: float = Field(0.01, gt=0)
     """Closing speeds below this count as this (iTTC = gap / max(v cos theta, eps))."""
+    path_gate: Literal["none", "straight", "arc"] = "arc"
+    """Rays that may brake: all ("none", the plain F1TENTH node), those hitting the straight-ahead
+    swept box, or those hitting the band swept at the current steering angle ("arc"). Measured
+    false brakes per gate: docs/controllers.md."""
     lateral_margin_m: float = Field(0.1, ge=0)
     """False-brake candidate: a brake whose rays all hit outside the car's straight-ahead swept
     box widened by this (m) on each side (e.g. a wall beside a corridor, a bend)."""
@@ -289,6 +298,13 @@ class EnvConfig(Section):
     parallel: bool = False
     """Fast backend: lidar on numba's threads (faster with a free core; contention when several
     runs share the 2 cores)."""
+    scenarios: str | None = None
+    """Scenario episodes: a suite (NAME or folder with suite.json: its train split), a folder of
+    scenario files, or one file. None: traffic episodes only."""
+    scenario_share: float = Field(0.0, ge=0, le=1)
+    """Share of the batch's worlds that run scenario episodes (the rest: traffic episodes)."""
+    contact_penalty: float = Field(0.0, le=0)
+    """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
 
 
 class PolicyConfig(Section):

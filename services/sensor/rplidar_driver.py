@@ -5,9 +5,13 @@ GET_HEALTH (an error state gets one more RESET), GET_LIDAR_CONF for the mode cou
 mode and the chosen mode's answer type and sample period, motor speed (A8), a pause for the
 motor to spin up, then SCAN (answer type 81) or EXPRESS_SCAN with the mode id (82/85).
 
-Recovery: no data for ``data_timeout_s`` or a health error => RESET and start again on the same
-port; the port failing (USB unplugged: reads raise, the device node disappears) => close, and
-retry opening every ``reconnect_s`` until it is back. Statistics are counted, never raised.
+Recovery: no decodable scan data for ``data_timeout_s`` (silence, or a stream of garbage) or a
+health error => RESET and start again on the same port; the port failing (USB unplugged: reads
+raise, the device node disappears) => close, and retry opening every ``reconnect_s`` until it is
+back. A re-opened port (not the first start) skips the RESET and its ~2 s wait (a re-plugged
+device has just powered up and is idle): STOP, a short settle, flush, then the handshake; if the device does not
+answer properly, the next attempt does the full RESET. That is what brings the first scan within
+~1 s of a replug (measured: docs/reliability.md). Statistics are counted, never raised.
 """
 
 from __future__ import annotations
@@ -24,6 +28,15 @@ import serial
 from racecav.services.sensor import rplidar_protocol as rp
 
 log = logging.getLogger("racecav.sensor.rplidar")
+
+
+FRESH_SETTLE_S = 0.05
+"""s between STOP and the flush on a freshly opened port (the SDK waits 1 ms after STOP)."""
+
+
+def stream_garbage(stats: "DriverStats") -> int:
+    """Bytes the scan parser skipped so far (resynchronisation)."""
+    return int(stats.parser.as_dict().get("resync_bytes", 0))
 
 
 class DeviceError(Exception):
@@ -68,7 +81,7 @@ class RplidarDriver:
     def __init__(self, port: str, on_revolution: Callable[[rp.Revolution], None], baudrate: int = 1_000_000,
                  scan_mode: int | None = None, motor_rpm: int = 600, cut_deg: float = 0.0,
                  reset_wait_s: float = 2.0, spinup_s: float = 0.5, data_timeout_s: float = 1.0,
-                 reconnect_s: float = 0.5, reply_timeout_s: float = 1.0,
+                 reconnect_s: float = 0.1, reply_timeout_s: float = 1.0,
                  stop_event: threading.Event | None = None):
         self.port, self.on_revolution, self.baudrate = port, on_revolution, baudrate
         self.scan_mode, self.motor_rpm, self.cut_deg = scan_mode, motor_rpm, cut_deg
@@ -86,6 +99,8 @@ class RplidarDriver:
         self.answer_type = 0
         self.us_per_sample = 0.0
         self._ser: serial.Serial | None = None
+        self._fresh = False
+        """The port was just opened: try the handshake without a RESET first."""
 
     # --- public ----------------------------------------------------------------------------
 
@@ -144,6 +159,7 @@ class RplidarDriver:
         except (OSError, serial.SerialException):
             pass
         self.stats.connects += 1
+        self._fresh = self.stats.connects > 1  # a re-plug; the first start follows the SDK (RESET)
         self._set_state("connected")
 
     def _close(self) -> None:
@@ -207,8 +223,16 @@ class RplidarDriver:
     # --- one session: handshake then scan until an error -------------------------------------
 
     def _session(self) -> None:
-        self._set_state("resetting")
-        self._reset()
+        if self._fresh:  # just plugged in: idle after power-up, no RESET needed (module docstring)
+            self._fresh = False
+            self._set_state("handshake")
+            self._ser.write(rp.request(rp.CMD_STOP))
+            if self.stop_event.wait(FRESH_SETTLE_S):
+                return
+            self._ser.reset_input_buffer()
+        else:
+            self._set_state("resetting")
+            self._reset()
         if self.stop_event.is_set():
             return
         self.info = rp.DeviceInfo.parse(self._command(rp.request(rp.CMD_GET_INFO), rp.ANS_INFO))
@@ -266,6 +290,10 @@ class RplidarDriver:
             if chunk:
                 self.stats.bytes_read += len(chunk)
                 samples = stream.feed(chunk)
+                if not len(samples.angle_deg) and now - last_data > self.data_timeout_s:
+                    # bytes keep coming but none decode (a confused device, a wrong baud rate)
+                    raise DeviceError(f"no decodable scan data for {self.data_timeout_s:.1f} s "
+                                      f"({stream_garbage(self.stats)} bytes skipped)")
                 if len(samples.angle_deg):
                     last_data = now
                     for rev in revs.add(samples, now):
