@@ -43,6 +43,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "train": ("racecav.training.bench_train", "PPO samples/s: the paper's setting vs more envs per rollout, larger minibatches, fewer epochs"),
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
     "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
+    "record": ("racecav.services.record.bench", "policy scan->command latency with racecav record / racecav ros2 running beside it; their per-message cost"),
 }
 
 
