@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scripted": ("racecav.services.sim.scripted", "controller answering each scan with a scripted command program (tests, demos)"),
     "policy": ("racecav.services.policy.service", "DRL policy controller: newest Scan -> numpy MLP -> DriveCommand"),
     "baseline": ("racecav.services.baseline.service", "MPC-APF baseline controller: lidar obstacles + casadi MPC -> DriveCommand"),
+    "safety": ("racecav.services.safety.service", "emergency-brake supervisor: per-ray time to collision -> brake input of the mux (racecav/<car>/safety)"),
     "ros2": ("racecav.services.ros2.service", "ROS 2 mirror over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds): /scan /odom /drive_out out, /drive in (extra: ros2)"),
     "record": ("racecav.services.record.record", "record the car's keys to one MCAP file: raw samples + ROS 2 /scan /odom /drive (extra: record)"),
     "replay": ("racecav.services.record.replay", "replay a recorded run's scans into a running controller and compare its commands with the recorded ones"),
@@ -44,6 +45,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
     "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
     "record": ("racecav.services.record.bench", "policy scan->command latency with racecav record / racecav ros2 running beside it; their per-message cost"),
+    "safety": ("racecav.services.safety.bench", "safety supervisor: scan -> brake latency (real processes), false brakes over ~100 laps of the empty tracks (shadow mode)"),
 }
 
 

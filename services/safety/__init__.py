@@ -1,0 +1,1 @@
+"""The emergency-brake supervisor (``racecav safety``): iTTC per lidar ray, brake input of the mux."""
