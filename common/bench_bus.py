@@ -104,8 +104,9 @@ def _measure(cfg: Config, endpoint: str, mode: str, args, warmup: int) -> tuple[
     bus = cfg.bus.model_copy(update={"connect": [endpoint], "mode": mode})
     with open_session(cfg.model_copy(update={"bus": bus})) as session:
         sub = session.declare_subscriber(keys.topic(bus.car, keys.SCAN), on_sample)
-        pub_proc = subprocess.Popen([sys.executable, "-m", "racecav.common.bench_bus", "--publisher",
-                                     str(args.rate), str(warmup + args.samples)], env=env, start_new_session=True)
+        pub_proc = procs.track(subprocess.Popen([sys.executable, "-m", "racecav.common.bench_bus", "--publisher",
+                                                  str(args.rate), str(warmup + args.samples)], env=env,
+                                                 start_new_session=True))
         try:
             procs.wait_alive(session, bus.car, "benchpub", proc=pub_proc)
             total_s = (warmup + args.samples) / args.rate + 10

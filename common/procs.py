@@ -1,16 +1,79 @@
 """Starting and stopping racecav processes: used by the benchmarks, the evaluation harness, the
-demo and the tests, so that all of them run the real services the same way."""
+demo and the tests, so that all of them run the real services the same way.
+
+Every process started here is remembered; :func:`install_cleanup` (the ``racecav`` command calls
+it for every subcommand) makes SIGTERM and SIGHUP raise SystemExit like SIGINT raises
+KeyboardInterrupt, so ``finally`` blocks run, and stops whatever is still running at exit. A
+bench, an evaluation or a demo killed with ``timeout``, Ctrl-C or ``systemctl stop``, or failing
+with an exception, leaves no router or service behind holding its ports. (Children run in their
+own sessions so that a Ctrl-C reaches them only through us, in order: clients before routers.)
+"""
 
 from __future__ import annotations
 
+import atexit
 import os
 import signal
+import threading
 import socket
 import subprocess
 import sys
 import time
 from contextlib import contextmanager
 from typing import Iterator
+
+
+_children: list[subprocess.Popen] = []
+_lock = threading.Lock()
+
+
+def track(proc: subprocess.Popen) -> subprocess.Popen:
+    """Remember ``proc`` (started in its own session) so that :func:`stop_all` stops it."""
+    with _lock:
+        _children[:] = [p for p in _children if p.poll() is None]
+        _children.append(proc)
+    return proc
+
+
+def stop_all(timeout: float = 5.0) -> int:
+    """Stop every remembered process still running, newest first (services before their
+    router); returns how many there were."""
+    with _lock:
+        running = [p for p in reversed(_children) if p.poll() is None]
+        _children.clear()
+    for p in running:
+        _signal(p, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    for p in running:
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            _signal(p, signal.SIGKILL)
+            p.wait()
+    return len(running)
+
+
+def _signal(p: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(p.pid, sig)
+    except (ProcessLookupError, PermissionError):
+        try:
+            p.send_signal(sig)
+        except ProcessLookupError:
+            pass
+
+
+def _raise_exit(signum, _frame):
+    raise SystemExit(128 + signum)
+
+
+def install_cleanup() -> None:
+    """SIGTERM/SIGHUP -> SystemExit (so ``finally`` blocks run) and :func:`stop_all` at exit.
+    A command that handles signals itself (every service) installs its own handlers after this."""
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, _raise_exit)
+    atexit.register(stop_all)
 
 
 def free_port() -> int:
@@ -38,8 +101,8 @@ def bus_env(endpoint: str, car: str = "car0", extra: dict[str, str] | None = Non
 def start(args: list[str], env: dict[str, str], log_path=None) -> subprocess.Popen:
     """Start ``racecav ARGS`` in its own process group; output to ``log_path`` or inherited."""
     out = open(log_path, "ab") if log_path else None
-    return subprocess.Popen(racecav_cmd(*args), env=env, stdout=out, stderr=subprocess.STDOUT if out else None,
-                            start_new_session=True)
+    return track(subprocess.Popen(racecav_cmd(*args), env=env, stdout=out,
+                                  stderr=subprocess.STDOUT if out else None, start_new_session=True))
 
 
 def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:

@@ -11,6 +11,7 @@ Each prints the path to open (a symlink to its pty) on its first line, e.g.::
 from __future__ import annotations
 
 import argparse
+import sys
 
 from racecav.cli import add_table, run_table
 
@@ -26,4 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    return run_table(args, cfg, "device", DEVICES)
+    try:
+        return run_table(args, cfg, "device", DEVICES)
+    except OSError as e:  # e.g. --link into a missing directory: one line, no traceback
+        where = f"--link {args.link}" if getattr(args, "link", None) else (e.filename2 or e.filename or "")
+        print(f"racecav emulate {args.device}: {where}: {e.strerror or e}", file=sys.stderr)
+        return 2
