@@ -66,6 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-dir", type=Path, default=OUT_DIR, help="where runs, logs and JSONL files go")
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"), help="--table: the document written")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--safety", choices=["on", "off"], default="off",
+                   help="on: also run racecav safety (the emergency-brake supervisor, a brake input of the "
+                        "sim's mux); results go to *-safety.json, the controller is named CONTROLLER+safety")
     p.add_argument("--record", nargs="?", const=True, type=Path, metavar="DIR",
                    help="write one MCAP run file per trial (racecav record; default DIR: "
                         "OUT_DIR/mcap/SCENARIO-CONTROLLER); replay one with racecav replay")
@@ -116,7 +119,9 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
     sc = load_scenario(ref)
     digest = R.file_digest(path)
     weights = R.file_digest(harness.ctrl.model) if harness.ctrl.model is not None else None
-    key = R.run_key(digest, harness.ctrl.name, harness.mode, base_seed, weights)
+    # with the safety supervisor the controller under test is CONTROLLER+safety
+    name = harness.ctrl.name + ("+safety" if getattr(harness, "safety", False) else "")
+    key = R.run_key(digest, name, harness.mode, base_seed, weights)
     jsonl.parent.mkdir(parents=True, exist_ok=True)
     done = R.read_jsonl(jsonl, key) if resume else {}
     if not resume and jsonl.exists():
@@ -154,15 +159,19 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
     try:
         info = harness.status_info()
         sim_counters = {k: info[k] for k in ("lockstep_republish", "stale_commands", "watchdog_brakes", "overruns",
-                                             "episode") if k in info}
+                                             "episode", "safety_brakes", "safety_verdict_timeouts") if k in info}
         ctrl_counters = harness.controller_status().info
+        if getattr(harness, "safety", False):  # the supervisor's brakes and false-brake candidates
+            from racecav.common.client import get_status
+
+            ctrl_counters["safety"] = get_status(harness.session, harness.car_name, "safety", timeout=5.0).info
     except Exception as e:  # a dead process: the stopped_reason already says why
         sim_counters = {"status_error": str(e)[:200]}
     res = R.RunResult(
         created_utc=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), git_commit=git_commit(),
         machine=machine(),
         scenario=R.ScenarioInfo(name=sc.name, ref=ref, digest=digest, duration_s=sc.duration_s),
-        controller=R.ControllerInfo(name=harness.ctrl.name, command=["racecav", *harness.ctrl.args],
+        controller=R.ControllerInfo(name=name, command=["racecav", *harness.ctrl.args],
                                     service=harness.ctrl.service, weights_sha256=weights),
         mode=harness.mode, base_seed=base_seed, trials_requested=trials, complete=len(finished) == trials,
         stopped_reason=stopped, wall_s=time.monotonic() - wall0, summary=R.summarize(finished),
@@ -275,7 +284,9 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
         return 2
     sc = load_scenario(ref)
     seed = args.seed if args.seed is not None else sc.seed
-    stem = f"{sc.name}-{ctrl.name}" + ("" if args.mode == "lockstep" else f"-{args.mode}")
+    safety = getattr(args, "safety", "off") == "on"
+    stem = (f"{sc.name}-{ctrl.name}" + ("" if args.mode == "lockstep" else f"-{args.mode}")
+            + ("-safety" if safety else ""))
     json_path = args.json or args.out_dir / f"{stem}.json"
     jsonl = args.jsonl or json_path.with_suffix(".jsonl")
     plot = args.plot or json_path.with_suffix(".png")
@@ -284,7 +295,7 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
         record = getattr(args, "record", None)
         record_dir = (args.out_dir / "mcap" / stem) if record is True else record
         with Harness(cfg, ctrl, args.mode, ref, args.out_dir / "logs" / stem, args.real_time_factor,
-                     record_dir=record_dir) as h:
+                     record_dir=record_dir, safety=safety) as h:
             res, error = run_trials(h, ref, path, trials, seed, jsonl, args.resume,
                                     bar=NoBar() if args.no_progress else None)
     except HarnessError as e:

@@ -224,11 +224,14 @@ class Harness:
     :param real_time_factor: realtime mode: sim seconds per wall second.
     :param record_dir: if set, a ``racecav record`` process writes one MCAP file per trial there
         (``<scenario>-<index>-seed<seed>.mcap``; what came before the first trial: setup.mcap).
+    :param safety: also run ``racecav safety`` (the emergency-brake supervisor; in lockstep the
+        sim waits for its verdict on every scan, so its brakes are deterministic too).
     """
 
     def __init__(self, cfg: Config, controller: Controller, mode: str, scenario: str, log_dir: Path,
-                 real_time_factor: float = 1.0, record_dir: Path | None = None):
+                 real_time_factor: float = 1.0, record_dir: Path | None = None, safety: bool = False):
         self.cfg, self.ctrl, self.mode, self.log_dir = cfg, controller, mode, Path(log_dir)
+        self.safety = safety
         self.record_dir = Path(record_dir) if record_dir is not None else None
         self.first_scenario, self.rtf = scenario, real_time_factor
         from racecav.common.vehicle import load_car
@@ -261,6 +264,9 @@ class Harness:
                 # a scan the controller missed (it subscribed late) is republished soon
                 "RACECAV_SIM__LOCKSTEP_TIMEOUT_S": "0.5",
                 "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf)})
+            if self.safety:  # before the sim: a lockstep sim waits for its verdicts
+                env["RACECAV_SIM__LOCKSTEP_SAFETY"] = "true"
+                self._start("safety", ["safety"], env)
             self._start("sim", ["sim", "--scenario", str(self.first_scenario), "--mode", self.mode], env)
             self._start(self.ctrl.service, list(self.ctrl.args), env)
             if self.record_dir is not None:  # a separate process: the control path never waits for it
