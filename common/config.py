@@ -476,6 +476,17 @@ class Ros2Config(Section):
     """Car file: throttle model (speed <-> throttle) and steering limits."""
 
 
+class VizConfig(Section):
+    """The Foxglove view (``racecav viz``)."""
+
+    host: str = "127.0.0.1"
+    """Listen address of the Foxglove WebSocket server (0.0.0.0: reachable from the network)."""
+    port: int = Field(8765, ge=0, le=65535)
+    """WebSocket port (Foxglove's default 8765; 0 = any free port)."""
+    world: str | None = None
+    """World whose walls are drawn; None = the world of sim.scenario."""
+
+
 class Config(Section):
     """The whole configuration. Sections are added by the services that own them."""
 
@@ -489,6 +500,7 @@ class Config(Section):
     baseline: BaselineConfig = BaselineConfig()
     safety: SafetyConfig = SafetyConfig()
     ros2: Ros2Config = Ros2Config()
+    viz: VizConfig = VizConfig()
 
     def digest(self) -> str:
         """Short hash of the effective configuration, reported in every ServiceStatus."""

@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ros2": ("racecav.services.ros2.service", "ROS 2 mirror over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds): /scan /odom /drive_out out, /drive in (extra: ros2)"),
     "record": ("racecav.services.record.record", "record the car's keys to one MCAP file: raw samples + ROS 2 /scan /odom /drive (extra: record)"),
     "replay": ("racecav.services.record.replay", "replay a recorded run's scans into a running controller and compare its commands with the recorded ones"),
+    "viz": ("racecav.services.viz.service", "live Foxglove view (WebSocket): scan, car and obstacle boxes, walls, commands, latency; --mcap PATH (extra: viz)"),
 }
 
 # `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
