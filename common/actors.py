@@ -185,8 +185,9 @@ class ActorBatch:
         c0 = np.take_along_axis(cum, k[..., None], -1)[..., 0]
         d = b - a
         seg = np.hypot(d[..., 0], d[..., 1])
-        u = (s - c0) / np.maximum(seg, 1e-12)
-        p = a + d * u[..., None]
+        with np.errstate(invalid="ignore"):  # parked slots (no path) are overwritten below
+            u = (s - c0) / np.maximum(seg, 1e-12)
+            p = a + d * u[..., None]
         parked = ~self.used[envs]  # unused slots: far away, neither seen nor touched
         self.x[envs] = np.where(parked, 1e6 + 10.0 * np.arange(self.n_actors), p[..., 0])
         self.y[envs] = np.where(parked, 1e6, p[..., 1])

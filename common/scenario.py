@@ -16,6 +16,7 @@ invalid fields are errors naming the field.
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -28,6 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from racecav.common.vehicle import format_errors
 
 SCENARIOS_DIR = Path(__file__).parent / "data" / "scenarios"
+SUITES_RUNS_DIR = Path("runs/suites")
+"""Generated conflict suites (``racecav suite generate``): runs/suites/NAME/{train,test}/, suite.json."""
 
 
 class _Strict(BaseModel):
@@ -251,3 +254,54 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
 def scenario_names() -> list[str]:
     """Names of the shipped scenarios."""
     return sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A generated suite on disk."""
+
+    root: Path
+    manifest: dict
+
+    def files(self, split: str) -> list[tuple[Path, str]]:
+        """(scenario file, family) of a split."""
+        return [(self.root / e["file"], e["family"]) for e in self.manifest["splits"][split]]
+
+    @property
+    def families(self) -> list[str]:
+        return list(self.manifest["families"])
+
+
+def open_suite(name_or_dir: str | Path) -> Suite:
+    """A generated suite by name (runs/suites/NAME) or folder (holding suite.json).
+
+    :raises ValueError: naming the folder when it holds no suite.
+    """
+    root = Path(name_or_dir)
+    if not (root / "suite.json").is_file():
+        root = SUITES_RUNS_DIR / str(name_or_dir)
+    man = root / "suite.json"
+    if not man.is_file():
+        raise ValueError(f"suite {name_or_dir}: no suite.json in {root} "
+                         f"(make it with `racecav suite generate --name {name_or_dir}`)")
+    try:
+        return Suite(root, json.loads(man.read_text()))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"suite {man}: invalid JSON: {e}") from None
+
+
+def scenario_files(spec: str | Path, split: str = "train") -> list[Path]:
+    """Scenario files of a suite's split (suite NAME or folder with suite.json), of a folder
+    (every *.toml in it), or one file.
+
+    :raises ValueError: when nothing is found, naming what was looked for.
+    """
+    p = Path(spec)
+    if p.is_file():
+        return [p]
+    if p.is_dir() and not (p / "suite.json").is_file():
+        files = sorted(p.glob("*.toml"))
+        if not files:
+            raise ValueError(f"scenarios {p}: no *.toml files in the folder")
+        return files
+    return [f for f, _fam in open_suite(spec).files(split)]

@@ -57,6 +57,37 @@ def make_traffic_driver(spec):
     return spec
 
 
+def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None) -> list:
+    """The fast worlds of a batch of ``n_envs``: traffic worlds (``1 - scenario_share`` of
+    them), then scenario worlds grouped by world geometry (sized by their number of files)."""
+    from racecav.common.scenario import load_scenario, scenario_files
+    from racecav.services.sim.fast_world import FastWorld
+
+    n_scen = int(round(settings.scenario_share * n_envs)) if settings.scenarios else 0
+    if settings.scenario_share > 0 and not settings.scenarios:
+        raise ValueError("scenario_share: needs scenarios (a suite, folder or file)")
+    worlds = []
+    if n_envs - n_scen > 0:
+        w = make_world(settings, n_envs=n_envs - n_scen, seed=seed, driver=driver)
+        w.time_limit[:] = settings.time_limit_s
+        worlds.append(w)
+    if n_scen:
+        groups: dict[str, list] = {}
+        for f in scenario_files(settings.scenarios, "train"):
+            sc = load_scenario(f)
+            groups.setdefault(sc.world, []).append(sc)
+        total = sum(len(g) for g in groups.values())
+        sizes = {k: max(1, int(round(n_scen * len(g) / total))) for k, g in groups.items()}
+        last = list(sizes)[-1]
+        sizes[last] = max(1, n_scen - sum(v for k, v in sizes.items() if k != last))
+        for k, (name, scs) in enumerate(groups.items()):
+            worlds.append(FastWorld(n_envs=sizes[name], scenarios=scs, car=settings.car,
+                                    control_period=settings.control_period_s,
+                                    seed=None if seed is None else seed + 7919 * (k + 1),
+                                    parallel=settings.parallel))
+    return worlds
+
+
 def make_world(settings: EnvConfig, n_envs: int = 1, seed: int | None = None, driver=None):
     """Build the backend world of ``settings`` (fast: FastWorld with n_envs worlds)."""
     driver = make_traffic_driver(settings.driver if driver is None else driver)

@@ -84,6 +84,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                         "(overtake default: policy:racing)")
         p.add_argument("--time-limit", type=float, help="episode time limit (s)")
         p.add_argument("--world", help="training world (common/data/worlds; default racetrack)")
+        p.add_argument("--scenarios", help="scenario episodes: a conflict suite (NAME or DIR; its train "
+                       "split), a folder of scenario files, or one file")
+        p.add_argument("--scenario-share", type=float, help="share of the batch running scenario "
+                       "episodes (default 0.5 with --scenarios)")
+        p.add_argument("--contact-penalty", type=float, help="reward at a contact (<= 0; default 0: "
+                       "the paper's reward)")
         p.add_argument("--init-from", type=Path, help="start the weights (and, if a .vecnorm.pkl "
                                                        "lies beside it, the normalisation) from this SB3 zip")
         p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
@@ -116,7 +122,11 @@ def run_settings(args) -> dict:
              n_obstacles=args.n_obstacles if args.n_obstacles is not None else (15 if overtake else 0),
              driver=args.driver or ("policy:racing" if overtake else "centerline"),
              time_limit=args.time_limit, world=args.world or "racetrack",
-             init_from=str(args.init_from) if args.init_from else None)
+             init_from=str(args.init_from) if args.init_from else None,
+             scenarios=args.scenarios,
+             scenario_share=(args.scenario_share if args.scenario_share is not None
+                             else (0.5 if args.scenarios else 0.0)),
+             contact_penalty=args.contact_penalty or 0.0)
     return s
 
 
@@ -136,7 +146,9 @@ def make_venv(s: dict, seed: int, cfg=None):
 
     venv = FastVecEnv(n_envs=s["n_envs"], config=cfg.env if cfg is not None else None,
                       heading=s["heading"], n_obstacles=s["n_obstacles"], driver=s["driver"],
-                      time_limit=s["time_limit"], world=s.get("world", "racetrack"), seed=seed)
+                      time_limit=s["time_limit"], world=s.get("world", "racetrack"),
+                      scenarios=s.get("scenarios"), scenario_share=s.get("scenario_share", 0.0),
+                      contact_penalty=s.get("contact_penalty", 0.0), seed=seed)
     return VecMonitor(venv)
 
 

@@ -4,7 +4,13 @@
 backend) stepped by one numba call chain. Semantics are SB3's: done envs are reset inside
 ``step_wait``; their last observation is in ``infos[i]["terminal_observation"]`` and
 ``infos[i]["TimeLimit.truncated"]`` is True when the time limit (not a contact) ended the
-episode. Wrap it in ``VecMonitor`` for episode returns and lengths.
+episode; scenario episodes also report ``infos[i]["is_success"]``. Wrap it in ``VecMonitor`` for
+episode returns and lengths.
+
+With ``scenarios`` and ``scenario_share`` a share of the batch runs scenario episodes (the
+conflict suite's train split: triggered, synchronised kinematic actors, common/actors.py), one
+FastWorld per scenario world geometry, beside the traffic worlds; each scenario episode ends at
+its scenario's duration.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from racecav.common.config import EnvConfig
-from racecav.training.env import env_settings, make_world, reward
+from racecav.training.env import env_settings, make_worlds, reward
 
 
 class FastVecEnv(VecEnv):
@@ -34,35 +40,47 @@ class FastVecEnv(VecEnv):
                  control_period: float | None = None, time_limit: float | None = None,
                  world: str | None = None, car: str | None = None,
                  agent_speed_scale: float | None = None, parallel: bool | None = None,
-                 seed: int | None = None):
+                 scenarios: str | None = None, scenario_share: float | None = None,
+                 contact_penalty: float | None = None, seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
                                      driver=driver if isinstance(driver, str) else None,
                                      control_period_s=control_period, time_limit_s=time_limit,
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
-                                     n_envs=n_envs, parallel=parallel)
-        n = self.settings.n_envs
-        self.world = make_world(self.settings, n_envs=n, seed=seed, driver=drv_obj)
+                                     n_envs=n_envs, parallel=parallel, scenarios=scenarios,
+                                     scenario_share=scenario_share, contact_penalty=contact_penalty)
+        # the batch: traffic worlds first, then one scenario world per scenario world geometry
+        self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
+        self.world = self.worlds[0]
+        n = sum(w.n_envs for w in self.worlds)
         spec = self.world.spec
         obs_space = gym.spaces.Box(spec.range_min, spec.range_max, (spec.n_rays,), np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
         super().__init__(n, obs_space, act_space)
-        self.max_steps = int(round(self.settings.time_limit_s / self.world.control_period))
-        self.steps = np.zeros(n, dtype=np.int64)
+        bounds = np.cumsum([0] + [w.n_envs for w in self.worlds])
+        self.slices = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        self.is_scenario = np.zeros(n, dtype=bool)
+        for w, sl in zip(self.worlds, self.slices):
+            self.is_scenario[sl] = w.actors is not None
         self.a_prev = np.zeros(n, dtype=np.float64)
         self._actions = np.zeros((n, 2))
         if seed is not None:
             self.seed(seed)
 
+    @property
+    def steps(self) -> np.ndarray:
+        """(N,) control steps of each world's current episode."""
+        return np.concatenate([np.rint(w.time / w.control_period).astype(np.int64) for w in self.worlds])
+
     # --- VecEnv API -----------------------------------------------------------------------
     def reset(self) -> np.ndarray:
         seed = self._seeds[0]
-        obs = self.world.reset(seed=seed)
+        obs = np.concatenate([w.reset(seed=None if seed is None else seed + 1_000_003 * k)
+                              for k, w in enumerate(self.worlds)])
         self._reset_seeds()
         self._reset_options()
-        self.steps[:] = 0
         self.a_prev[:] = 0.0
         self.reset_infos = [{} for _ in range(self.num_envs)]
         return obs
@@ -71,22 +89,37 @@ class FastVecEnv(VecEnv):
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
 
     def step_wait(self) -> VecEnvStepReturn:
-        obs, (throttle, a_delta), collided, _info = self.world.step(self._actions)
-        rewards = reward(throttle, self.a_prev, a_delta)
+        obs_parts, thr, a_d, col, trunc, succ = [], [], [], [], [], []
+        for w, sl in zip(self.worlds, self.slices):
+            o, (t, d), c, _info = w.step(self._actions[sl])
+            obs_parts.append(o)
+            thr.append(t)
+            a_d.append(d)
+            col.append(c)
+            trunc.append((w.time >= w.time_limit - 1e-9) & ~c)
+            succ.append(w.success() if w.actors is not None else np.zeros(w.n_envs, bool))
+        obs = np.concatenate(obs_parts)
+        collided, truncated = np.concatenate(col), np.concatenate(trunc)
+        a_delta = np.concatenate(a_d)
+        rewards = reward(np.concatenate(thr), self.a_prev, a_delta)
+        if self.settings.contact_penalty:
+            rewards = rewards + np.float32(self.settings.contact_penalty) * collided
         self.a_prev[:] = a_delta
-        self.steps += 1
-        truncated = (self.steps >= self.max_steps) & ~collided
         dones = collided | truncated
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         if dones.any():
-            idx = np.flatnonzero(dones)
-            for i in idx:
+            success = np.concatenate(succ)
+            for i in np.flatnonzero(dones):
                 infos[i]["terminal_observation"] = obs[i].copy()
                 infos[i]["TimeLimit.truncated"] = bool(truncated[i])
-            self.world.reset_worlds(idx)
-            obs = self.world.agent_obs()
-            self.steps[idx] = 0
-            self.a_prev[idx] = 0.0
+                if self.is_scenario[i]:  # SB3's convention (evaluation helpers read it)
+                    infos[i]["is_success"] = bool(success[i])
+            for w, sl in zip(self.worlds, self.slices):
+                idx = np.flatnonzero(dones[sl])
+                if idx.size:
+                    w.reset_worlds(idx)
+                    obs[sl] = w.agent_obs()
+            self.a_prev[dones] = 0.0
         return obs, rewards, dones, infos
 
     def close(self) -> None:

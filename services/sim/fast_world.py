@@ -234,6 +234,8 @@ class FastWorld:
         self.scenario_index = np.full(N, -1, dtype=np.int64)
         self.collided = np.zeros(N, dtype=bool)
         self.actors = None
+        self.scenario_of_env: np.ndarray | None = None
+        """Scenario index per world (validation, evaluation); None: drawn at each reset."""
         if self.scenarios:
             from racecav.common.actors import ActorBatch
 
@@ -291,6 +293,8 @@ class FastWorld:
         scale = self.speed_scale[0, 0]
         for n in envs:
             k = int(self.rng.integers(len(self.scenarios)))
+            if self.scenario_of_env is not None:
+                k = int(self.scenario_of_env[n])
             sc = self.scenarios[k]
             trial = sc.sample(self.rng)
             ex, ey, eyaw, ev = trial.ego
