@@ -35,10 +35,11 @@ from pathlib import Path
 
 from racecav.common.config import Config
 
-ACCOUNTS = ("sensor", "sim", "policy", "baseline", "actuator", "teleop", "monitor")
-"""One Zenoh account per service (monitor: ``racecav state``/``echo``; teleop: a joystick tool).
+ACCOUNTS = ("sensor", "sim", "policy", "baseline", "actuator", "teleop", "monitor", "operator", "safety")
+"""One Zenoh account per service (monitor: ``racecav state``/``echo``, read-only; teleop: a
+joystick tool; operator: simulator control and the e-stop, e.g. ``racecav eval`` or a laptop).
 What each may do is in deploy/zenoh/router.json5."""
-REMOTE_ACCOUNTS = ("sim", "teleop", "monitor")
+REMOTE_ACCOUNTS = ("sim", "teleop", "monitor", "operator")
 """Accounts the router accepts from the network (mutual TLS); the others only over loopback."""
 
 TEMPLATE = Path(__file__).parent / "zenoh" / "router.json5"

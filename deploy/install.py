@@ -5,7 +5,7 @@ What it does, in order (each step is printed; ``--dry-run`` prints without doing
 1. the system user ``racecav`` (group racecav, member of dialout for the serial devices);
 2. a venv at ``PREFIX/venv`` with racecav installed from ``--source`` (skip with ``--venv PATH``
    to use an existing one);
-3. the systemd units racecav-{router,sensor,sim,policy,baseline,actuator}.service and
+3. the systemd units racecav-{router,sensor,sim,policy,baseline,actuator,safety}.service and
    racecav.target into ``/etc/systemd/system`` (paths rewritten for the venv and the root);
 4. the udev rules (/dev/rplidar, /dev/vesc) into ``/etc/udev/rules.d``;
 5. ``/etc/racecav/racecav.toml`` and ``racecav.env`` (kept if they exist: they are yours);
@@ -31,8 +31,9 @@ from racecav.common.config import Config
 from racecav.deploy.credentials import Plan, make_credentials, router_listen
 
 HERE = Path(__file__).resolve().parent
-SERVICES = ("router", "sensor", "sim", "policy", "baseline", "actuator")
-"""Every unit racecav-<name>.service; :data:`ENABLED` are the real car's defaults."""
+SERVICES = ("router", "sensor", "sim", "policy", "baseline", "actuator", "safety")
+"""Every unit racecav-<name>.service; :data:`ENABLED` are the real car's defaults (safety, the
+emergency-brake supervisor, is optional: ``systemctl enable --now racecav-safety``)."""
 ENABLED = ("router", "sensor", "policy", "actuator")
 USER = "racecav"
 UNIT_VENV = "/opt/racecav/venv"

@@ -176,3 +176,34 @@ def test_supervisor_does_not_brake_while_a_policy_laps_the_empty_racetrack(spawn
     assert not info["collided"] and info["progress_m"] > 40.0, info
     assert s["scans"] >= 290 and s["brakes"] == 0 and info["safety_brakes"] == 0, (info, s)
     assert info["safety_verdict_timeouts"] == 0
+
+
+def test_only_the_safety_account_may_brake(tmp_path):
+    # the deployed router's access control: the brake input is the supervisor's alone
+    from racecav.common import keys
+    from racecav.common.codec import decode, encode
+    from racecav.common.messages import DriveCommand
+    from tests.deploy_support import DeployedCar
+
+    c = DeployedCar(tmp_path, hosts=["localhost", "127.0.0.1"])
+    try:
+        c.start("router")
+        c.wait_ready("router", 30)
+        key = keys.topic("car0", keys.SAFETY)
+        got: list[str] = []
+        with c.session("monitor") as mon:
+            sub = mon.declare_subscriber(key, lambda s: got.append(decode(s.payload.to_bytes(), DriveCommand).source))
+            try:
+                for account in ("safety", "policy", "teleop", "sim", "monitor"):
+                    with c.session(account) as s:
+                        time.sleep(0.3)
+                        for k in range(3):
+                            s.put(key, encode(DriveCommand(stamp_ns=k, seq=k, source=account, a_throttle=-1.0,
+                                                           a_steer=0.0, throttle=0.0, steering_angle=0.0)))
+                            time.sleep(0.02)
+                        time.sleep(0.3)
+            finally:
+                sub.undeclare()
+        assert set(got) == {"safety"}, got
+    finally:
+        c.stop_all()
