@@ -318,6 +318,12 @@ class PolicyConfig(Section):
     clock (source "real"); sim stamps are sim time and only the arrival age applies."""
     car: str = "slash"
     """Car file: steering limits of the physical steering angle in the command."""
+    backend: Literal["fused", "numpy", "onnxruntime"] = "fused"
+    """Inference: fused (one numba kernel, the default), numpy (the reference NumpyPolicy), or
+    onnxruntime (the ONNX export of the same weights; extra ``onnx``)."""
+    onnx: str | None = None
+    """onnxruntime backend: a model.onnx written by ``racecav train export --onnx``; None = build
+    the ONNX graph from the weights in memory at start."""
 
 
 class PerceptionConfig(Section):

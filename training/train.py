@@ -97,14 +97,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from racecav.training import select  # cheap module: argument definitions only
 
     select.add_subcommands(sub)
+    p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
+                       "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
+    p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
+    p.add_argument("--out", type=Path, help="output folder (default runs/onnx/NAME)")
+    p.add_argument("--car", default="slash", help="car file (lidar layout, steering mapping in the sidecar)")
+    p.set_defaults(stage="export")
 
 
 def run(args, cfg) -> int:
     if args.train_cmd in ("racing", "overtake"):
         return train(args, cfg)
+    if args.train_cmd == "export":
+        return export_onnx(args)
     from racecav.training import select
 
     return select.run(args, cfg)
+
+
+def export_onnx(args) -> int:
+    """``racecav train export --onnx NAME``: services/policy/onnx_export.py does the work."""
+    try:
+        from racecav.services.policy.onnx_export import export
+    except ImportError as e:
+        print(f"racecav train export: {e} (pip install 'racecav[onnx]')")
+        return 2
+    out = args.out or RUNS_DIR / "onnx" / Path(args.onnx).stem
+    try:
+        model, meta = export(args.onnx, out, args.car)
+    except ImportError as e:
+        print(f"racecav train export: {e} (pip install 'racecav[onnx]')")
+        return 2
+    except (ValueError, FileNotFoundError) as e:
+        print(f"racecav train export: {e}")
+        return 2
+    print(f"wrote {model} and {meta}")
+    return 0
 
 
 # ----------------------------------------------------------------------------------- settings

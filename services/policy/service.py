@@ -25,6 +25,10 @@ from racecav.services.controller import ControllerService
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", help="reversed | default | racing | PATH to a policy .npz (default: policy.model)")
     p.add_argument("--max-scan-age", type=float, help="seconds; older scans get no command (default: policy.max_scan_age_s)")
+    p.add_argument("--backend", choices=["fused", "numpy", "onnxruntime"],
+                   help="inference: fused numba kernel (default), numpy reference, or onnxruntime")
+    p.add_argument("--onnx", help="onnxruntime: model.onnx from `racecav train export --onnx` "
+                                  "(default: built from the weights at start)")
 
 
 class PolicyService(ControllerService):
@@ -47,9 +51,17 @@ class PolicyService(ControllerService):
         if self.policy.obs_dim != self.spec.n_rays:
             raise ValueError(f"policy {self.model_ref!r}: expects {self.policy.obs_dim} rays, "
                              f"the car's lidar has {self.spec.n_rays}")
-        from racecav.services.policy.fused import FusedPolicy
+        self.backend = pcfg.backend
+        if self.backend == "fused":
+            from racecav.services.policy.fused import FusedPolicy
 
-        self.fused = FusedPolicy(self.policy, self.spec)
+            self.fused = FusedPolicy(self.policy, self.spec)
+        elif self.backend == "onnxruntime":
+            from racecav.services.policy.onnx_export import OnnxPolicy, build_onnx
+
+            self.fused = OnnxPolicy(pcfg.onnx if pcfg.onnx else build_onnx(self.policy, self.spec))
+        else:  # the reference: sanitize + NumpyPolicy
+            self.fused = lambda ranges: tuple(float(v) for v in self.policy(sanitize(ranges, self.spec)))
 
     def observe(self, scan: Scan):
         """The observation of a scan, exactly as the training env builds it (reference path)."""
@@ -59,7 +71,7 @@ class PolicyService(ControllerService):
         return self.fused(scan.ranges)
 
     def info(self) -> dict[str, Any]:
-        return {**super().info(), "model": self.model_ref, "normalize": self.policy.normalize,
+        return {**super().info(), "model": self.model_ref, "backend": self.backend, "normalize": self.policy.normalize,
                 "n_params": self.policy.n_params}
 
 
@@ -69,10 +81,16 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
         upd["model"] = args.model
     if getattr(args, "max_scan_age", None) is not None:
         upd["max_scan_age_s"] = args.max_scan_age
+    for k in ("backend", "onnx"):
+        if getattr(args, k, None):
+            upd[k] = getattr(args, k)
     try:
         pcfg = type(cfg.policy).model_validate({**cfg.policy.model_dump(), **upd})
         cfg = cfg.model_copy(update={"policy": pcfg})
         svc = PolicyService(cfg)
+    except ImportError as e:
+        print(f"racecav policy: {e} (the onnxruntime backend needs: pip install 'racecav[onnx]')")
+        return 2
     except (ValueError, FileNotFoundError) as e:
         print(f"racecav policy: {e}")
         return 2
