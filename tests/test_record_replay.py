@@ -88,6 +88,10 @@ def test_run_file_layout_is_read_by_ros_tools(tmp_path):
     assert decoded["/odom"][2].pose.pose.position.x == 2.0
     assert decoded["/drive"][0].drive.steering_angle == pytest.approx(-0.05)
 
+    from racecav.services.record.plot import plot_run
+
+    assert plot_run(path, tmp_path / "run.png").stat().st_size > 10_000
+
     from rosbags.highlevel import AnyReader
 
     with AnyReader([path]) as r:

@@ -34,6 +34,7 @@ EXAMPLES = """examples:
   racecav replay run.mcap --lockstep               # every scan, answer by answer
   racecav replay run.mcap --rate 2 --json diff.json
   racecav replay run.mcap --lockstep --tolerance 1e-6   # exit 1 on any difference
+  racecav replay run.mcap --no-replay --plot run.png --world intersection   # just draw it
 """
 
 
@@ -49,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tolerance", type=float,
                    help="exit 1 if a normalised action differs by more than this, or a scan gets no answer")
     p.add_argument("--json", help="write the report to this file")
+    p.add_argument("--plot", metavar="PNG", help="draw the run (paths, scans, recorded and replayed commands)")
+    p.add_argument("--world", help="--plot: draw this world's walls under the paths")
+    p.add_argument("--no-replay", action="store_true", help="only read the file (with --plot: just draw it)")
     p.epilog = EXAMPLES
     p.formatter_class = argparse.RawDescriptionHelpFormatter
 
@@ -206,6 +210,13 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     if not scans:
         print(f"racecav replay: {args.file}: no valid scans to replay")
         return 2
+    if args.no_replay:
+        print(f"{args.file}: {len(scans)} scans, {len(recorded)} recorded commands")
+        if args.plot:
+            from racecav.services.record.plot import plot_run
+
+            print(f"plot: {plot_run(args.file, args.plot, _src, args.world)}")
+        return 0
     car = cfg.bus.car
     with open_session(cfg) as session:
         try:
@@ -221,6 +232,10 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     print(format_report(rep))
     if args.json:
         Path(args.json).write_text(json.dumps(rep, indent=2))
+    if args.plot:
+        from racecav.services.record.plot import plot_run
+
+        print(f"plot: {plot_run(args.file, args.plot, _src, args.world, new_cmds=new)}")
     if args.tolerance is not None:
         worst = max(rep["a_throttle_max_abs_diff"], rep["a_steer_max_abs_diff"])
         if worst > args.tolerance or rep["answered"] < rep["scans"]:
