@@ -143,6 +143,10 @@ class ActuatorConfig(Section):
     """Where the e-stop latch is kept across restarts (file ``estop-<car>.json``). None: systemd's
     $STATE_DIRECTORY (the unit's StateDirectory=racecav, /var/lib/racecav) or
     ~/.local/state/racecav. Design: docs/reliability.md."""
+    sim_scans_drive: bool = False
+    """Obey commands that answer simulator scans (DriveCommand.scan_source "sim"): only for
+    hardware in the loop with the car on a stand. Off: they are refused and counted
+    (``sim_refused``), so a simulator started by mistake, or from a desktop, cannot drive the car."""
     follow_liveliness: bool = True
     """Brake the moment the controller's liveliness token (racecav/<car>/<controller>/alive)
     vanishes (a dead process: ~ms), instead of waiting for timeout_s (the backstop for a live
@@ -480,6 +484,9 @@ class Ros2Config(Section):
     """The car's body frame: Odometry child_frame_id, AckermannDriveStamped frame_id."""
     car: str = "slash"
     """Car file: throttle model (speed <-> throttle) and steering limits."""
+    nice: int = Field(10, ge=0, le=19)
+    """Niceness added to the mirror process: on a busy CPU the controllers go first (measured in
+    docs/benchmarks.md, record). Set 0 when a ROS controller drives the car through /drive."""
 
 
 class VizConfig(Section):

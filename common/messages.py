@@ -141,6 +141,9 @@ class DriveCommand(Message):
     scan_seq: int = Field(-1, ge=-1, le=INT64_MAX)
     scan_stamp_ns: int = Field(-1, ge=-1, le=INT64_MAX)
     compute_ns: Count = 0
+    scan_source: Literal["", "sim", "real"] = ""
+    """Source of the scan this command answers ("" = not an answer to a scan, e.g. teleop): the
+    actuator refuses answers to simulator scans unless ``actuator.sim_scans_drive``."""
 
     @model_validator(mode="after")
     def _consistent(self) -> "DriveCommand":

@@ -64,7 +64,8 @@ def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams,
     return DriveCommand(stamp_ns=stamp, seq=seq, source=source, a_throttle=a_t, a_steer=a_s,
                         throttle=float(throttle_from_action(a_t)),
                         steering_angle=float(steer_from_action(a_s, car)),
-                        scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=int(compute_ns))
+                        scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=int(compute_ns),
+                        scan_source=scan.source)
 
 
 class ControllerService(Service):

@@ -35,7 +35,7 @@ def car(tmp_path):
         "RACECAV_SENSOR__PORT": str(tmp_path / "rplidar"), "RACECAV_SENSOR__RESET_WAIT_S": "0.2",
         "RACECAV_SENSOR__SPINUP_S": "0.05", "RACECAV_ACTUATOR__PORT": str(tmp_path / "vesc"),
         "RACECAV_ACTUATOR__TIMEOUT_S": "0.3", "RACECAV_POLICY__MODEL": str(model),
-        "RACECAV_SIM__ON_END": "reset"})
+        "RACECAV_SIM__ON_END": "reset", "RACECAV_ACTUATOR__SIM_SCANS_DRIVE": "true"})  # car on a stand
     emus = []
     try:
         c.start("router")

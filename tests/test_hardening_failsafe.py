@@ -158,3 +158,18 @@ def test_controller_death_brakes_within_50ms(router, spawn, session, vesc, tmp_p
     assert statistics.median(delays) <= 0.05, delays  # the timeout alone would take ~0.2 s
     st = get_status(session, CAR, "actuator")
     assert st.info["controller_lost"] == 3 and st.info["controller_alive"] is False
+
+
+def test_answers_to_sim_scans_do_not_drive_the_real_motor(spawn, session, vesc, tmp_path):
+    pub = session.declare_publisher(keys.topic(CAR, keys.CMD), express=True)
+    start_actuator(spawn, session, vesc, tmp_path / "s")
+    t = time.monotonic()
+    for k in range(10):  # what the policy sends when the simulator feeds it (hardware in the loop)
+        pub.put(encode(DriveCommand(stamp_ns=time.monotonic_ns(), seq=k, source="policy", a_throttle=0.5,
+                                    a_steer=0.0, throttle=0.5, steering_angle=0.0, scan_source="sim")))
+        time.sleep(0.02)
+    time.sleep(0.1)
+    assert not rpm_after(vesc, t)
+    assert get_status(session, CAR, "actuator").info["sim_refused"] == 10
+    drive(pub, 0.2)  # answers to real scans (and unset scan_source) still drive
+    assert rpm_after(vesc, t)

@@ -131,6 +131,7 @@ class ActuatorService(Service):
         self._next_poll = 0.0
         self.link: VescLink | None = None
         self._serial_error = ""
+        self.sim_refused = 0
         self.latch = LatchFile(self.acfg.state_dir, self.car)
 
     def setup(self) -> None:
@@ -173,12 +174,12 @@ class ActuatorService(Service):
                              ", ".join(why), self.topic(ESTOP))
 
     def _on_controller_alive(self, _name: str, alive: bool) -> None:
-        if not alive and self.controller_alive is not False:
+        self.controller_alive = alive
+        if not alive:  # every withdrawal, even if its appearance was not seen
             self.controller_lost += 1
             self.mux.lost(CMD)
-            self._record_error(f"controller {self.acfg.controller}: liveliness lost, braking")
             self._notify()
-        self.controller_alive = alive
+            self._record_error(f"controller {self.acfg.controller}: liveliness lost, braking")
 
     # --- callbacks (Zenoh threads: short, never block) ------------------------------------------
 
@@ -191,7 +192,10 @@ class ActuatorService(Service):
             self._record_error(f"malformed {channel}: {e}")
             self.mux.reject(channel, now)
         else:
-            if not self.mux.offer(msg, channel, now):
+            if msg.scan_source == "sim" and not self.acfg.sim_scans_drive:
+                self.sim_refused += 1
+                self._record_error(f"refused {channel}: answers a simulator scan (actuator.sim_scans_drive is off)")
+            elif not self.mux.offer(msg, channel, now):
                 self._record_error(f"refused {channel}: source {msg.source!r}")
         self._notify()
 
@@ -255,7 +259,7 @@ class ActuatorService(Service):
                     serial_error=self.link.last_error if self.link else "",
                     controller_alive=getattr(self, "controller_alive", None),
                     controller_lost=getattr(self, "controller_lost", 0),
-                    latch_file=str(self.latch.path), latch_error=self.latch.error,
+                    latch_file=str(self.latch.path), latch_error=self.latch.error, sim_refused=self.sim_refused,
                     values=self.values, values_age_s=round(time.monotonic() - self._values_t, 3) if self._values_t else None)
 
     def teardown(self) -> None:

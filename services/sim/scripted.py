@@ -91,7 +91,8 @@ class ScriptedController(Service):
         self.pub.put(DriveCommand(stamp_ns=scan.stamp_ns, seq=self.answered, source=self.source,
                                   a_throttle=a_t, a_steer=a_s, throttle=float(throttle_from_action(a_t)),
                                   steering_angle=float(steer_from_action(a_s, self.car_params)),
-                                  scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=compute_ns))
+                                  scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=compute_ns,
+                                  scan_source=scan.source))
         self.answered += 1
         self._last_seq = scan.seq
 
