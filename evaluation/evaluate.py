@@ -48,6 +48,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(straight ahead at 1 m/s / full throttle, no evasion: references)")
     p.add_argument("--model", type=Path, help="drl-* controllers: evaluate this policy .npz instead of the "
                    "shipped weights (e.g. a checkpoint before shipping)")
+    p.add_argument("--suite", help="a conflict suite (NAME under runs/suites or DIR with suite.json, from "
+                   "`racecav suite generate`): every file of --split, per-family success (with --table: the "
+                   "suite section's suite, default conflicts)")
+    p.add_argument("--split", default="test", choices=["test", "train"], help="--suite: which split (default test)")
+    p.add_argument("--trials-per-scenario", type=int, default=5,
+                   help="--suite: trials per scenario file (default 5: 100 per family of 20 files)")
     p.add_argument("--table", action="store_true",
                    help="every controller x the three intersection scenarios; writes docs/results.md")
     p.add_argument("--controllers", help="--table: comma-separated subset "
@@ -230,8 +236,12 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
         from racecav.evaluation.table import run_table
 
         return _guarded(lambda: run_table(args, cfg))
+    if args.suite and args.controller:
+        from racecav.evaluation.suite_eval import run_suite
+
+        return _guarded(lambda: run_suite(args, cfg))
     if not args.scenario or not args.controller:
-        print("racecav eval: --scenario and --controller are required (or --table)", file=sys.stderr)
+        print("racecav eval: --scenario (or --suite) and --controller are required (or --table)", file=sys.stderr)
         return 2
     return _guarded(lambda: run_single(args, cfg))
 

@@ -10,7 +10,9 @@ into the ego's road, braking to a stop in the ego's lane, a stopped car, two sta
 as ranges. Each generated file is one scenario (common/scenario.py) whose actors are timed by the
 ego (start trigger on its time to arrival + synchronised arrival, common/actors.py). Every file
 is validated at generation on the fast world: a non-evading ego driving straight at 1 m/s and at
-full throttle must collide in every check trial, else the file is redrawn (counted).
+full throttle must collide in every check trial (randomised as in the file, and with the ego's
+start shifted 5 cm to either side: a margin against near misses), else the file is redrawn
+(counted).
 
 Output: ``runs/suites/NAME/{train,test}/FAMILY-NNNN.toml`` and ``suite.json`` (family, seed and
 file of every scenario, the redraw counts). The two splits come from disjoint seeds
@@ -41,8 +43,10 @@ SUITES_DIR = Path(__file__).resolve().parent.parent / "common" / "data" / "suite
 SPLITS = ("train", "test")
 REFERENCE_SPEEDS = (1.0, None)
 """Validation egos: straight at 1 m/s and at full throttle (None)."""
-CHECK_TRIALS = 3
+CHECK_TRIALS = 4
 """Randomised trials per reference ego in the validation (all must collide)."""
+VALIDATION_SHIFTS = (0.0, -0.05, 0.05)
+"""m: the validation egos also start this far to either side (near misses are redrawn)."""
 MAX_ATTEMPTS = 200
 LANE_OFFSET = 0.6
 """m: the centre of a lane of the 2.4 m roads (right-hand traffic)."""
@@ -290,7 +294,7 @@ def scenario_data(d: Draw, c: Common, f: Family, name: str) -> dict:
         "duration_s": _r(d.ego_distance / 0.6 + c.margin_s),
         "ego": d.ego,
         "obstacles": d.obstacles,
-        "randomize": {"ego_xy": 0.05, "ego_yaw_deg": 1.0, "ego_speed": 0.05, "obstacle_xy": 0.05,
+        "randomize": {"ego_xy": 0.05, "ego_yaw_deg": 0.5, "ego_speed": 0.05, "obstacle_xy": 0.05,
                       "obstacle_yaw_deg": 1.0},
         "success": {"min_progress_m": _r(d.ego_distance + c.progress_past_m)},
     }
@@ -329,6 +333,15 @@ def straight_collisions(scenarios: list[Scenario], speeds=REFERENCE_SPEEDS, tria
                 live &= fw.time < fw.time_limit - 1e-9
             out[idx, j] = col.reshape(len(scs), trials).all(axis=1)
     return out
+
+
+def _shift_ego(sc: Scenario, dy: float) -> Scenario:
+    """The scenario with its ego starting ``dy`` metres to its left."""
+    if not dy:
+        return sc
+    e = sc.ego
+    return sc.model_copy(update={"ego": e.model_copy(update={
+        "x": e.x - dy * math.sin(math.radians(e.yaw_deg)), "y": e.y + dy * math.cos(math.radians(e.yaw_deg))})})
 
 
 # --------------------------------------------------------------------------------- generation
@@ -373,7 +386,10 @@ def generate(ff: FamilyFile, out: Path, n_test: int, n_train: int, seed: int = 0
                     name = f"{fam.name}-{i:04d}"
                     data = scenario_data(draw(rng, ff.common, fam), ff.common, fam, name)
                     batch.append((i, data, Scenario.model_validate(data)))
-                ok = straight_collisions([b[2] for b in batch], seed=seed + 7919 * si).all(axis=1)
+                ok = np.ones(len(batch), bool)
+                for dy in VALIDATION_SHIFTS:  # a margin: no near miss passes for a conflict
+                    shifted = [_shift_ego(b[2], dy) for b in batch]
+                    ok &= straight_collisions(shifted, seed=seed + 7919 * si).all(axis=1)
                 pending = []
                 for (i, data, _sc), good in zip(batch, ok):
                     if good:

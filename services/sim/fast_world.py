@@ -290,22 +290,30 @@ class FastWorld:
 
     def _place_scenarios(self, envs: np.ndarray) -> None:
         """Draw a scenario and a trial for each world of ``envs``; place the ego and actors."""
-        scale = self.speed_scale[0, 0]
         for n in envs:
             k = int(self.rng.integers(len(self.scenarios)))
             if self.scenario_of_env is not None:
                 k = int(self.scenario_of_env[n])
-            sc = self.scenarios[k]
-            trial = sc.sample(self.rng)
-            ex, ey, eyaw, ev = trial.ego
-            self.scenario_index[n] = k
-            self.time_limit[n] = sc.duration_s
-            self.min_progress[n] = sc.success.min_progress_m
-            self.start_pose[n] = ex, ey, eyaw
-            self.x[n, 0], self.y[n, 0], self.yaw[n, 0], self.v[n, 0] = ex, ey, eyaw, ev
-            self.w[n, 0] = ev / (self.car.wheel_radius * scale)
-            self.actors.load(int(n), trial.obstacles)
-            self.active[n, 1:] = self.actors.used[n]
+            self.place_trial(int(n), k, self.scenarios[k].sample(self.rng), rescan=False)
+        self._actors_to_cars()
+        self._scan(envs)
+
+    def place_trial(self, n: int, k: int, trial, rescan: bool = True) -> None:
+        """Start world ``n`` on a concrete trial of scenario ``k`` (parity tests: the trial the
+        PyBullet backend drew)."""
+        sc = self.scenarios[k]
+        ex, ey, eyaw, ev = trial.ego
+        self.scenario_index[n] = k
+        self.time_limit[n] = sc.duration_s
+        self.min_progress[n] = sc.success.min_progress_m
+        self.start_pose[n] = ex, ey, eyaw
+        self.x[n, 0], self.y[n, 0], self.yaw[n, 0], self.v[n, 0] = ex, ey, eyaw, ev
+        self.w[n, 0] = ev / (self.car.wheel_radius * self.speed_scale[n, 0])
+        self.actors.load(n, trial.obstacles)
+        self.active[n, 1:] = self.actors.used[n]
+        self.prog[n] = 0.0
+        self.collided[n] = False
+        envs = np.array([n])
         self.delta[envs] = 0.0
         self.delta_cmd[envs] = 0.0
         self.beta[envs] = 0.0
@@ -313,8 +321,9 @@ class FastWorld:
         self.time[envs] = 0.0
         self.wall_hit[envs] = False
         self.car_hit[envs] = -1
-        self._actors_to_cars()
-        self._scan(envs)
+        if rescan:
+            self._actors_to_cars()
+            self._scan(envs)
 
     def _actors_to_cars(self) -> None:
         a = self.actors
