@@ -487,6 +487,10 @@ class Ros2Config(Section):
     nice: int = Field(10, ge=0, le=19)
     """Niceness added to the mirror process: on a busy CPU the controllers go first (measured in
     docs/benchmarks.md, record). Set 0 when a ROS controller drives the car through /drive."""
+    batch_s: float = Field(0.01, ge=0)
+    """Outgoing messages are converted and sent in batches this often (s), not in the
+    subscriber callback: the mirror's traffic then does not meet the scan -> command burst at
+    the router (docs/benchmarks.md, record). 0 = at once."""
 
 
 class VizConfig(Section):
