@@ -125,3 +125,16 @@ def test_safety_brake_frames():
     assert frames[0] == vp.set_current_brake(ACFG.brake_current_a)
     assert frames[1] == vp.set_servo_pos(m.servo(0.1))
     assert not mux.decide(0.21).brake and m.decision_frames(mux.decide(0.21))[0] == m.motor_frame(0.5)
+
+
+def test_forget_drops_inputs_but_not_the_estop():
+    mux = CommandMux.from_config(ACFG)
+    give(mux, keys.SAFETY, 0.0)
+    give(mux, keys.TELEOP, 0.0)
+    mux.forget()  # the sim's new episode
+    assert mux.decide(0.0).reason == "no command"
+    c = give(mux, keys.CMD, 0.1)  # no teleop hold survives the reset either
+    assert mux.decide(0.1).cmd is c
+    mux.estop(b"stop")
+    mux.forget()
+    assert mux.decide(0.2).reason == "estop"

@@ -207,3 +207,52 @@ def test_only_the_safety_account_may_brake(tmp_path):
         assert set(got) == {"safety"}, got
     finally:
         c.stop_all()
+
+
+def test_sim_obeys_the_same_mux_estop_and_teleop(spawn, session, tmp_path):
+    # the simulated car under the actuator's mux: e-stop latch beats the controller, teleop
+    # overrides it; realtime, like the car
+    from racecav.common import keys
+    from racecav.common.codec import encode
+    from racecav.common.messages import DriveCommand
+    from racecav.common.procs import wait_alive
+
+    scen = tmp_path / "wall.toml"
+    scen.write_text(WALL.replace("duration_s = 4.0", "duration_s = 30.0").replace("yaw_deg = 30.0", "yaw_deg = 0.0"))
+    sim = spawn("sim", "--scenario", str(scen), "--mode", "realtime")
+    wait_alive(session, "car0", "sim", 60, sim)
+    spawn("scripted", "--program", "0.3,0.0,100000")
+
+    def vx() -> float:
+        from racecav.common.codec import decode
+        from racecav.common.messages import VehicleState
+
+        got = []
+        sub = session.declare_subscriber(keys.topic("car0", keys.STATE),
+                                         lambda smp: got.append(decode(smp.payload.to_bytes(), VehicleState).vx))
+        t0 = time.monotonic()
+        while not got and time.monotonic() - t0 < 2.0:
+            time.sleep(0.02)
+        sub.undeclare()
+        return got[-1]
+
+    time.sleep(1.5)
+    assert vx() > 0.3  # driving
+    session.put(keys.topic("car0", keys.ESTOP), b"stop")
+    time.sleep(1.0)
+    assert abs(vx()) < 0.05  # latched: braked to a stop although the controller keeps commanding
+    info = get_status(session, "car0", "sim").info
+    assert info["mux"]["estop"]
+    session.put(keys.topic("car0", keys.ESTOP), b"clear")
+    time.sleep(1.0)
+    assert vx() > 0.2
+    # teleop (source "teleop") overrides the controller
+    pub = session.declare_publisher(keys.topic("car0", keys.TELEOP))
+    for k in range(15):
+        pub.put(encode(DriveCommand(stamp_ns=k, seq=k, source="teleop", a_throttle=1.0, a_steer=0.0,
+                                    throttle=1.0, steering_angle=0.0)))
+        time.sleep(0.1)
+    v_teleop = vx()
+    pub.undeclare()
+    assert v_teleop > 1.2  # full throttle from teleop, the controller asks for 0.3
+    assert get_status(session, "car0", "sim").info["mux"]["accepted_by"]["teleop"] >= 10

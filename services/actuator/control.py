@@ -227,6 +227,14 @@ class CommandMux:
         with self._lock:
             self._latest.pop(channel, None)
 
+    def forget(self) -> None:
+        """Drop every input's command (not the e-stop latch): the simulator's new episode starts
+        with no command in force, whatever the last one said."""
+        with self._lock:
+            self._latest.clear()
+            self._last_tele = -math.inf
+            self._malformed_at = -math.inf
+
     def decide(self, now: float) -> Decision:
         far = now + 3600.0
         with self._lock:

@@ -18,7 +18,7 @@ Inputs are arbitrated by the actuator's own mux (:class:`CommandMux`, actuator s
 latch > safety brake > teleop > ROS drive > controller, each with its timeout), so the sim and
 the car obey the same order; the sim's cmd input accepts any controller and times out after
 ``watchdog_s``. Realtime: wall clock, like the actuator. Lockstep: sim time (a command counts
-from its scan's stamp plus its compute time); with ``lockstep_safety`` each step also waits for
+from its scan's time plus its compute time); with ``lockstep_safety`` each step also waits for
 the safety supervisor's verdict on the scan (racecav/<car>/safety/verdict), so a brake always
 applies to the scan it answers. A brake (neutral or the supervisor's) sets the wheel speed
 target to 0.
@@ -169,6 +169,8 @@ class SimService(Service):
         self.world.set_physical(0.0, 0.0, brake=False)
         self._wall0 = None
         self._applied_since = -1.0
+        if hasattr(self, "mux"):
+            self.mux.forget()  # nothing said in the last episode holds in this one (the e-stop does)
         self._next = None
         self._rtf_window = []
         self._episode_wall_ns = time.monotonic_ns()
@@ -451,9 +453,8 @@ class SimService(Service):
         if self.scfg.lockstep_safety:
             self._wait_verdict(want)
 
-        # the mux runs on sim time, monotonic across episodes (the e-stop latch outlives them)
-        base = self.offset_ns * 1e-9
-        t_k += base
+        # the mux runs on the episode's sim time (it forgot every input at the reset; the e-stop
+        # latch outlives episodes): the same trial gives the same schedule to the last bit
 
         def when(msg: DriveCommand, _arrival: int) -> float:
             # an answer to this scan counts from the scan plus its compute time; other inputs
@@ -475,8 +476,9 @@ class SimService(Service):
                 i += 1
             d = self.mux.decide(t)
             self._count_safety(d)
-            act = self._physical(d)
-            if act != prev:
+            # before the episode's first command the car carries on as reset (the old behaviour)
+            act = prev if d.reason == "no command" else self._physical(d)
+            if act is not None and act != prev:
                 schedule.append((max(t - t_k, 0.0), act))
                 prev = act
             if d.cmd is not None:
