@@ -407,7 +407,16 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
         send(per_key, True)
         elapsed = time.monotonic() - t0
         time.sleep(1.0)
-        after = {n: get_status(session, CAR, n) for n in SUBSCRIBERS}
+        after = {}
+        for n in SUBSCRIBERS:  # a service still working through the flood answers late, not never
+            for attempt in range(5):
+                try:
+                    after[n] = get_status(session, CAR, n, timeout=5)
+                    break
+                except RuntimeError as e:
+                    after[n] = e
+            if isinstance(after[n], Exception):
+                raise RuntimeError(f"{n} does not answer its status after the fuzz: {after[n]}")
         alive = live_services(session, CAR)
         rows = {}
         for name, st in after.items():

@@ -16,6 +16,7 @@ import json
 import time
 from collections import Counter
 
+import numpy as np
 import pytest
 import zenoh
 from hypothesis import HealthCheck, given, settings
@@ -28,6 +29,7 @@ from racecav.services.actuator.emulator import VescEmulator
 
 CAR = "car0"
 PER_KEY = 120
+WARMUP = 40
 
 # who subscribes to which input key (the services' setup(); baseline: ego_state auto reads state)
 SUBSCRIBERS = {
@@ -81,20 +83,21 @@ def test_hostile_payloads_on_every_key_and_query(services, session):
     invalid: Counter = Counter()
     rss0 = {}
 
-    for i, leaf in enumerate(fuzz.INPUTS):
-        key = keys.topic(CAR, leaf)
+    for rnd, n in enumerate((WARMUP, PER_KEY)):
+        for leaf in fuzz.INPUTS:
+            key = keys.topic(CAR, leaf)
 
-        @settings(max_examples=PER_KEY, deadline=None, database=None,
-                  suppress_health_check=list(HealthCheck))
-        @given(payload=fuzz.strategy(leaf))
-        def send(payload: bytes) -> None:
-            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-            sent[leaf] += 1
-            invalid[leaf] += fuzz.expected_invalid(leaf, payload)
-            time.sleep(0.0005)
+            @settings(max_examples=n, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+            @given(payload=fuzz.strategy(leaf))
+            def send(payload: bytes) -> None:
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                sent[leaf] += 1
+                invalid[leaf] += fuzz.expected_invalid(leaf, payload)
+                time.sleep(0.0005)
 
-        send()
-        if i == 0:  # after warm-up (first payloads decoded, caches filled)
+            send()
+        if rnd == 0:  # after a warm-up round on every key (buffers and caches grown once)
+            time.sleep(0.5)
             rss0 = {n: rss_kb(p) for n, p in pids.items()}
 
     # queries: bad payloads are refused with an error reply, the queryable keeps answering
@@ -138,20 +141,31 @@ def test_hostile_payloads_on_every_key_and_query(services, session):
                              timeout=10))
     assert reply["seed"] == 7
     assert json.loads(query(session, keys.service_key(CAR, "sim", "scenario"), None))["available"]
-    answered = after["policy"].info["answered"]
-    import numpy as np
-
+    # every scan consumer still works (a hostile stamp of 2^63 ns once made the ego model of the
+    # baseline and the safety supervisor integrate for hours: alive, but silent)
+    done = lambda: {"policy": get_status(session, CAR, "policy").info["answered"],  # noqa: E731
+                    "baseline": get_status(session, CAR, "baseline").info["answered"]
+                    + get_status(session, CAR, "baseline").info["no_action"],
+                    "safety": get_status(session, CAR, "safety").info["scans"]}
+    base = done()
     rng = np.random.default_rng(1)
+    stamp = 10**9
     for k in range(5):
-        session.put(keys.topic(CAR, keys.SCAN), encode(fuzz.valid_message(keys.SCAN, rng)))
-        time.sleep(0.02)
-    assert wait_until(lambda: get_status(session, CAR, "policy").info["answered"] >= answered + 5)
+        scan = fuzz.valid_message(keys.SCAN, rng).model_copy(update={"stamp_ns": stamp + k * 10**8, "seq": k})
+        session.put(keys.topic(CAR, keys.SCAN), encode(scan))
+        time.sleep(0.15)
+    assert wait_until(lambda: all(v >= base[n] + 3 for n, v in done().items()), timeout=20), (base, done())
     session.put(keys.topic(CAR, keys.ESTOP), b"clear")
     time.sleep(0.1)
+    acc = get_status(session, CAR, "actuator").info["accepted_by"]["controller"]
     t = time.monotonic()
     for k in range(10):
         session.put(keys.topic(CAR, keys.CMD), encode(DriveCommand(
             stamp_ns=time.monotonic_ns(), seq=k, source="policy", a_throttle=0.5, a_steer=0.0, throttle=0.5,
             steering_angle=0.0)))
         time.sleep(0.02)
-    assert [r for r in vesc.frames("SET_RPM") if r.t > t]
+    # accepted by the mux (what drives then depends on the safety supervisor, which may brake for
+    # the simulator's world) and frames still flow to the VESC
+    info = get_status(session, CAR, "actuator").info
+    assert info["estop"] is False and info["accepted_by"]["controller"] >= acc + 10, info
+    assert [r for r in vesc.frames() if r.t > t]

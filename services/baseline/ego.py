@@ -23,6 +23,10 @@ from racecav.common.messages import VehicleState
 from racecav.common.vehicle import CarParams, steer_rate_limit, wheel_speed_step
 
 
+
+MAX_GAP_S = 1.0
+"""Longest stretch (s) the dead-reckoning model integrates between two stamps (ten scans)."""
+
 class EgoEstimator:
     """Ego pose/speed/steering at scan times (see the module docstring).
 
@@ -101,6 +105,9 @@ class EgoEstimator:
         else:
             self.source = "model"
         if self.t_ns is not None and scan_stamp_ns > self.t_ns:
-            self._propagate((scan_stamp_ns - self.t_ns) * 1e-9)
+            # A gap beyond MAX_GAP_S (a restarted simulator, a clock jump, a hostile stamp of
+            # 2^63 ns) is not integrated step by step, which would take the process hours: the
+            # model coasts through at most MAX_GAP_S and its clock jumps.
+            self._propagate(min((scan_stamp_ns - self.t_ns) * 1e-9, MAX_GAP_S))
         self.t_ns = scan_stamp_ns
         return self.x, self.y, self.yaw, self.v, self.steer
