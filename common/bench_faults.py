@@ -513,7 +513,7 @@ def report(res: dict, command: str) -> str:
         ["lidar replug -> first scan (shipped timings)", f"{rp['n']} replugs",
          f"median {_ms(rp)} ms, max {_ms(rp, 'max')} ms", "<= 1 s"],
         [f"lidar garbage-only stream -> reset (data_timeout_s {lid['data_timeout_s']})", f"{gr['n']} runs",
-         f"median {_ms(gr)} ms, max {_ms(gr, 'max')} ms", "within the data timeout"],
+         f"median {_ms(gr)} ms, max {_ms(gr, 'max')} ms", "the data timeout (+ one read)"],
     ]
     for outage, delays in res["router_restart_s"].items():
         s = summarize(delays)
@@ -551,7 +551,7 @@ refused by validation, none reached code that raised).
 
 ## How it works
 
-**No input kills a service.** :func:`racecav.common.codec.decode` raises only `DecodeError`:
+**No input kills a service.** `racecav.common.codec.decode` raises only `DecodeError`:
 strict types (no strings or booleans coerced into numbers), integers within int64, finite angles
 within two turns, a scan increment of at least 1e-5 rad and at most 16,384 rays, DriveCommands
 whose `throttle` equals `clip(a_throttle, 0, 1)` and whose steering fields agree in sign. Query
