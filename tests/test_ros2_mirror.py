@@ -219,6 +219,10 @@ def test_sim_policy_mirror_end_to_end(spawn, session, tmp_path):
         assert att is not None and len(att) == 33
         by_key.setdefault(k.split("/")[1], []).append(payload)
     assert set(by_key) == {"scan", "odom", "drive_out"}
+    assert {k for k, _p, _a in cap.items} == {
+        f"0/scan/sensor_msgs::msg::dds_::LaserScan_/{LASER_SCAN_HASH}",
+        f"0/odom/nav_msgs::msg::dds_::Odometry_/{msgs.type_hash(msgs.ODOMETRY)}",
+        f"0/drive_out/ackermann_msgs::msg::dds_::AckermannDriveStamped_/{ACKERMANN_STAMPED_HASH}"}
 
     scans = {s.stamp_ns: s for s in got[keys.SCAN]}
     for payload in by_key["scan"]:
