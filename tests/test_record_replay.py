@@ -76,6 +76,8 @@ def test_run_file_layout_is_read_by_ros_tools(tmp_path):
         summary = reader.get_summary()
         chans = {c.topic: c for c in summary.channels.values()}
         assert chans["racecav/car0/scan"].message_encoding == RAW_ENCODING
+        # rosbag2's MCAP storage throws on a channel without a schema record (`ros2 bag info`)
+        assert all(c.schema_id in summary.schemas for c in chans.values())
         assert chans["/scan"].message_encoding == "cdr" and "offered_qos_profiles" in chans["/scan"].metadata
         assert {summary.schemas[c.schema_id].encoding for t, c in chans.items() if t.startswith("/")} == {"ros2msg"}
         decoded = {}

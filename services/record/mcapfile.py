@@ -4,13 +4,15 @@ Channels (MCAP profile ``ros2``, so rosbag2, rosbags and Foxglove open the file)
 
 - one per recorded Zenoh key, topic = the key (``racecav/car0/scan``), message encoding
   ``racecav-msgpack`` (the bus payload byte for byte: exact replay; MCAP registers no msgpack
-  encoding, hence a custom name), no schema (rosbag2 and rosbags read only ROS schema
-  encodings), the message type and wire schema version in the channel metadata
-  (``racecav_type``, ``racecav_schema_version``);
+  encoding, hence a custom name), a schema record named ``racecav/<type>`` with no schema in it
+  (empty encoding: rosbag2 needs a schema record per channel and reads only ROS schema encodings),
+  the message type and wire schema version in the channel metadata (``racecav_type``,
+  ``racecav_schema_version``);
 - ROS 2 copies: ``/scan`` sensor_msgs/msg/LaserScan, ``/odom`` nav_msgs/msg/Odometry and
   ``/drive`` ackermann_msgs/msg/AckermannDriveStamped (the controller's command, F1TENTH's
   name), message encoding ``cdr``, schema encoding ``ros2msg`` (the .msg text with its
-  dependencies), ``offered_qos_profiles`` metadata, as rosbag2's MCAP storage writes them.
+  dependencies), ``offered_qos_profiles`` and ``topic_type_hash`` metadata, as rosbag2's MCAP
+  storage writes them.
 
 Log time is the arrival time on this host's real-time clock; header stamps of the ROS copies are
 the same (the racecav stamp, which may be sim time, stays in the raw sample). A metadata record
@@ -131,13 +133,15 @@ class RunWriter:
         cid = self._channels.get(key)
         if cid is None:
             typ = _type_of(payload)
-            cid = self._channel(key, RAW_ENCODING, "", "", b"",
+            # A schema record without a schema (empty encoding, as MCAP allows): rosbag2 refuses a
+            # channel that has no schema record at all (`ros2 bag info`: "Could not find schema").
+            cid = self._channel(key, RAW_ENCODING, f"racecav/{typ or 'bytes'}", "", b"",
                                 {"racecav_type": typ or "", "racecav_schema_version": str(SCHEMA_VERSION)})
         self._add(cid, key, payload, t)
         leaf = key.rsplit("/", 1)[-1]
         if self._conv is None or leaf not in self._convert or key != keys.topic(self.car, leaf):
             return
-        from racecav.services.ros2.msgs import msgdef
+        from racecav.services.ros2.msgs import msgdef, type_hash
 
         topic, type_name = ROS_COPIES[leaf]
         try:
@@ -147,7 +151,7 @@ class RunWriter:
         rid = self._channels.get(topic)
         if rid is None:
             rid = self._channel(topic, "cdr", type_name, "ros2msg", msgdef(type_name).encode(),
-                                {"offered_qos_profiles": _QOS})
+                                {"offered_qos_profiles": _QOS, "topic_type_hash": type_hash(type_name)})
         self._add(rid, topic, self._convert[leaf](msg, t), t)
 
     def close(self) -> None:
