@@ -307,6 +307,9 @@ class EnvConfig(Section):
     scenario files, or one file. None: traffic episodes only."""
     scenario_share: float = Field(0.0, ge=0, le=1)
     """Share of the batch's worlds that run scenario episodes (the rest: traffic episodes)."""
+    obs_stack: int = Field(1, ge=1, le=4)
+    """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
+    More than one shows motion; the policy service stacks the same way (policy metadata)."""
     contact_penalty: float = Field(0.0, le=0)
     """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
 

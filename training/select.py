@@ -31,6 +31,7 @@ from pathlib import Path
 log = logging.getLogger("racecav.train")
 
 SCENARIOS = ("right-to-left", "head-to-head", "left-to-right")
+CONFLICT_SCENARIOS = tuple(f"conflict-{s}" for s in SCENARIOS)
 SELECT_SEED = 100_000
 REPORT_SEED = 0
 SUCCESS_RESOLUTION = 0.05
@@ -48,6 +49,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--last", type=int, help="only the last K checkpoints")
     p.add_argument("--every", type=int, default=1, help="every k-th checkpoint (the last always)")
     p.add_argument("--no-intersection", action="store_true", help="held-out env only (racing stage)")
+    p.add_argument("--suite-episodes", type=int, default=512, help="runs with --scenarios: fast-world episodes "
+                   "on the suite's train split (selection seeds) per checkpoint")
     p.set_defaults(stage="select")
     p = sub.add_parser("ship", help="export a checkpoint as services/policy/models/NAME.{npz,json,zip}")
     p.add_argument("--run-dir", type=Path, required=True)
@@ -66,7 +69,7 @@ def run(args, cfg) -> int:
 
 
 # ----------------------------------------------------------------------------------- evaluation
-def policy_from_checkpoint(zip_path: Path):
+def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1):
     """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present)."""
     import pickle
 
@@ -82,7 +85,7 @@ def policy_from_checkpoint(zip_path: Path):
             norm = pickle.load(f)
         arrays.update(obs_mean=norm.obs_rms.mean, obs_var=norm.obs_rms.var,
                       obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
-    return NumpyPolicy(arrays)
+    return NumpyPolicy(arrays, {"obs_stack": obs_stack})
 
 
 def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) -> dict:
@@ -93,7 +96,8 @@ def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) ->
 
     env = FastVecEnv(n_envs=episodes, heading=settings["heading"], n_obstacles=settings["n_obstacles"],
                      driver=settings["driver"], time_limit=settings.get("time_limit"),
-                     world=settings.get("world", "racetrack"), seed=seed)
+                     world=settings.get("world", "racetrack"), obs_stack=settings.get("obs_stack", 1),
+                     seed=seed)
     obs = env.reset()
     ret = np.zeros(episodes)
     done = np.zeros(episodes, bool)
@@ -126,6 +130,32 @@ def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) ->
             "env_ep_len": float(length.mean()), "env_progress": float(prog.mean())}
 
 
+def eval_suite_fast(policy, settings: dict, episodes: int, seed: int = SELECT_SEED) -> dict:
+    """Success of one episode in each of ``episodes`` fast worlds running the run's scenario
+    files (its suite's train split) with selection seeds: overall and per family."""
+    import numpy as np
+
+    from racecav.training.vec_env import FastVecEnv
+
+    env = FastVecEnv(n_envs=episodes, scenarios=settings["scenarios"], scenario_share=1.0,
+                     obs_stack=settings.get("obs_stack", 1), seed=seed)
+    obs = env.reset()
+    names = np.concatenate([[w.scenarios[k].name for k in w.scenario_index] for w in env.worlds])
+    done = np.zeros(env.num_envs, bool)
+    success = np.zeros(env.num_envs, bool)
+    while not done.all():
+        obs, _r, d, infos = env.step(policy(obs))
+        for i in np.flatnonzero(d & ~done):
+            success[i] = infos[i].get("is_success", False)
+        done |= d
+    fams: dict[str, list[bool]] = {}
+    for name, ok in zip(names, success):
+        fams.setdefault(str(name).rsplit("-", 1)[0], []).append(bool(ok))
+    out = {"suite_success": float(success.mean()), "suite_episodes": int(env.num_envs)}
+    out.update({f"suite_{f}": float(np.mean(v)) for f, v in sorted(fams.items())})
+    return out
+
+
 def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 0) -> dict:
     """In-process PyBullet trials of one intersection scenario: success, contact, progress.
 
@@ -133,17 +163,21 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
     """
     from racecav.services.sim.bullet_world import BulletWorld
 
+    from racecav.services.policy.model import ScanStack
+
     bw = BulletWorld(scenario)
     dur = bw.scenario.duration_s
     ok = contact = 0
     prog, paths = [], []
+    stack = ScanStack(getattr(policy, "obs_stack", 1))
     try:
         for k in range(trials):
             obs = bw.reset(seed=seed0 + k)
+            stack.reset()
             collided = False
             path = []
             while bw.t < dur - 1e-9 and not collided:
-                obs, _, col, _ = bw.step(policy(obs[0]))
+                obs, _, col, _ = bw.step(policy(stack(obs[0])))
                 collided = bool(col[0])
                 if k < record:
                     path.append([*bw.agent_state()[:2], *[c for o in bw.obstacles()[:, :2] for c in o]])
@@ -189,9 +223,13 @@ def select(args, cfg) -> int:
         with out.open() as f:
             done = {int(r["timesteps"]): r for r in csv.DictReader(f)}
     fields = ["timesteps", "checkpoint", "env_return", "env_contact_rate", "env_ep_len", "env_progress"]
+    conflict = bool(settings.get("scenarios"))
     if not args.no_intersection:
         fields += [f"{s}_{m}" for s in SCENARIOS for m in ("success", "contact", "progress")]
         fields += ["intersection_success", "trials"]
+        if conflict:  # avoidance runs: the suite's train split and the conflict-timed paper scenarios
+            fields += [f"{s}_success" for s in CONFLICT_SCENARIOS] + ["conflict_success", "suite_success",
+                                                                       "suite_episodes", "score"]
     rows = []
     for ck in tqdm(picked, desc=f"select {run_dir.name}", unit="ckpt"):
         n = _step(ck)
@@ -199,7 +237,7 @@ def select(args, cfg) -> int:
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
             rows.append(prev)
             continue
-        pol = policy_from_checkpoint(ck)
+        pol = policy_from_checkpoint(ck, settings.get("obs_stack", 1))
         row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, settings, args.episodes)}
         if not args.no_intersection:
             rates = []
@@ -210,6 +248,14 @@ def select(args, cfg) -> int:
                 rates.append(r["success"])
             row["intersection_success"] = sum(rates) / len(rates)
             row["trials"] = args.trials
+            if conflict:
+                crates = [eval_scenario(pol, sc, args.trials, SELECT_SEED)["success"] for sc in CONFLICT_SCENARIOS]
+                row.update({f"{sc}_success": r for sc, r in zip(CONFLICT_SCENARIOS, crates)})
+                row["conflict_success"] = sum(crates) / len(crates)
+                suite = eval_suite_fast(pol, settings, args.suite_episodes)
+                row.update(suite)
+                fields += [k for k in suite if k not in fields]
+                row["score"] = (row["suite_success"] + row["conflict_success"] + row["intersection_success"]) / 3
         rows.append(row)
         seen = {int(r["timesteps"]) for r in rows}
         _write_csv(out, fields, sorted(rows + [r for n, r in done.items() if n not in seen],
@@ -234,6 +280,9 @@ def pick_best(rows: list[dict], intersection: bool) -> dict:
     def key(r):
         if not intersection:
             return (0.0, float(r["env_return"]), 0.0)
+        if r.get("score") not in (None, ""):  # avoidance runs: suite, conflict-timed and paper scenarios
+            return (math.floor(float(r["score"]) / SUCCESS_RESOLUTION + 1e-9), float(r["suite_success"]),
+                    float(r["env_return"]))
         no_contact = sum(1 - float(r[f"{s}_contact"]) for s in SCENARIOS) / len(SCENARIOS)
         succ = math.floor(float(r["intersection_success"]) / SUCCESS_RESOLUTION + 1e-9)
         return (succ, float(r["env_return"]), no_contact)
@@ -312,7 +361,10 @@ def ship(args, cfg) -> int:
             "seed": settings["seed"], "settings": settings, "git_commit_training": settings.get("git_commit"),
             "git_commit_export": git_commit(),
             "run_total_steps": latest.get("timesteps"), "run_wall_s": latest.get("wall_s"),
-            "selection": evals.get(n), "observation": "sanitised lidar ranges (common/lidar.sanitize), 170, m",
+            "selection": evals.get(n), "obs_stack": settings.get("obs_stack", 1),
+            "observation": ("sanitised lidar ranges (common/lidar.sanitize), 170, m"
+                            + (f"; the newest {settings['obs_stack']} scans, newest first"
+                               if settings.get("obs_stack", 1) > 1 else "")),
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"}
     dst = MODELS_DIR / f"{args.name}.npz"
     export_policy(model, dst, meta, obs_rms=norm.obs_rms if norm else None,

@@ -28,6 +28,7 @@ import argparse
 import csv
 import json
 import logging
+import pickle
 import os
 import signal
 import subprocess
@@ -88,6 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        "split), a folder of scenario files, or one file")
         p.add_argument("--scenario-share", type=float, help="share of the batch running scenario "
                        "episodes (default 0.5 with --scenarios)")
+        p.add_argument("--obs-stack", type=int, help="scans per observation, newest first (default 1: the "
+                       "paper's; > 1 shows motion; --init-from a 1-scan policy starts with zero weights on the "
+                       "older scans, i.e. the same behaviour)")
         p.add_argument("--contact-penalty", type=float, help="reward at a contact (<= 0; default 0: "
                        "the paper's reward)")
         p.add_argument("--init-from", type=Path, help="start the weights (and, if a .vecnorm.pkl "
@@ -154,7 +158,8 @@ def run_settings(args) -> dict:
              scenarios=args.scenarios,
              scenario_share=(args.scenario_share if args.scenario_share is not None
                              else (0.5 if args.scenarios else 0.0)),
-             contact_penalty=args.contact_penalty or 0.0)
+             contact_penalty=args.contact_penalty or 0.0,
+             obs_stack=args.obs_stack or 1)
     return s
 
 
@@ -176,7 +181,8 @@ def make_venv(s: dict, seed: int, cfg=None):
                       heading=s["heading"], n_obstacles=s["n_obstacles"], driver=s["driver"],
                       time_limit=s["time_limit"], world=s.get("world", "racetrack"),
                       scenarios=s.get("scenarios"), scenario_share=s.get("scenario_share", 0.0),
-                      contact_penalty=s.get("contact_penalty", 0.0), seed=seed)
+                      contact_penalty=s.get("contact_penalty", 0.0), obs_stack=s.get("obs_stack", 1),
+                      seed=seed)
     return VecMonitor(venv)
 
 
@@ -192,6 +198,7 @@ def _ppo_kwargs(s: dict) -> dict:
 
 # ----------------------------------------------------------------------------------- training
 def train(args, cfg) -> int:
+    import numpy as np
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
@@ -231,8 +238,13 @@ def train(args, cfg) -> int:
             init_norm = Path(s["init_from"]).with_suffix(".vecnorm.pkl") if s.get("init_from") else None
             if init_norm is not None and init_norm.is_file():
                 # the weights expect the statistics they were trained with: start from those
-                old = VecNormalize.load(str(init_norm), venv.venv)
-                venv.obs_rms, venv.ret_rms = old.obs_rms, old.ret_rms
+                with init_norm.open("rb") as f:
+                    old = pickle.load(f)
+                venv.ret_rms = old.ret_rms
+                k = s.get("obs_stack", 1)  # a 1-scan policy's statistics for every scan of the stack
+                venv.obs_rms.mean = np.tile(old.obs_rms.mean, k // max(1, len(old.obs_rms.mean) // 170))
+                venv.obs_rms.var = np.tile(old.obs_rms.var, k // max(1, len(old.obs_rms.var) // 170))
+                venv.obs_rms.count = old.obs_rms.count
     if args.resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         _truncate_csv(run_dir / "progress.csv", model.num_timesteps)
@@ -240,7 +252,7 @@ def train(args, cfg) -> int:
     else:
         model = PPO("MlpPolicy", venv, seed=s["seed"], device="cpu", verbose=0, **_ppo_kwargs(s))
         if s.get("init_from"):
-            model.set_parameters(str(s["init_from"]), exact_match=True, device="cpu")
+            init_weights(model, Path(s["init_from"]))
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, s["checkpoint_every"], state["wall_s"], progress=not args.no_progress)
     remaining = total - model.num_timesteps
@@ -260,6 +272,26 @@ def train(args, cfg) -> int:
     log.info("%s at %d samples (%s)", run_dir, model.num_timesteps,
              "stopped by signal" if cb.stop_requested else "done")
     return 0
+
+
+def init_weights(model, path: Path) -> None:
+    """Start ``model``'s policy from an SB3 zip. A first layer narrower than the model's (a
+    1-scan policy into a stacked observation) is widened with zero weights on the extra inputs,
+    so the new model starts with the old behaviour."""
+    import torch
+    from stable_baselines3 import PPO
+
+    src = PPO.load(path, device="cpu").policy.state_dict()
+    dst = model.policy.state_dict()
+    for k, v in src.items():
+        if k in dst and dst[k].shape != v.shape:
+            if v.ndim == 2 and dst[k].shape[0] == v.shape[0] and dst[k].shape[1] % v.shape[1] == 0:
+                w = torch.zeros_like(dst[k])
+                w[:, : v.shape[1]] = v
+                src[k] = w
+            else:
+                raise ValueError(f"--init-from {path}: {k} has shape {tuple(v.shape)}, the model {tuple(dst[k].shape)}")
+    model.policy.load_state_dict(src, strict=True)
 
 
 def _truncate_csv(path: Path, timesteps: int) -> None:

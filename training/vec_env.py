@@ -41,7 +41,8 @@ class FastVecEnv(VecEnv):
                  world: str | None = None, car: str | None = None,
                  agent_speed_scale: float | None = None, parallel: bool | None = None,
                  scenarios: str | None = None, scenario_share: float | None = None,
-                 contact_penalty: float | None = None, seed: int | None = None):
+                 contact_penalty: float | None = None, obs_stack: int | None = None,
+                 seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -49,13 +50,15 @@ class FastVecEnv(VecEnv):
                                      control_period_s=control_period, time_limit_s=time_limit,
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
                                      n_envs=n_envs, parallel=parallel, scenarios=scenarios,
-                                     scenario_share=scenario_share, contact_penalty=contact_penalty)
+                                     scenario_share=scenario_share, contact_penalty=contact_penalty,
+                                     obs_stack=obs_stack)
         # the batch: traffic worlds first, then one scenario world per scenario world geometry
         self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
         self.world = self.worlds[0]
         n = sum(w.n_envs for w in self.worlds)
         spec = self.world.spec
-        obs_space = gym.spaces.Box(spec.range_min, spec.range_max, (spec.n_rays,), np.float32)
+        self.n_stack = self.settings.obs_stack
+        obs_space = gym.spaces.Box(spec.range_min, spec.range_max, (self.n_stack * spec.n_rays,), np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
         super().__init__(n, obs_space, act_space)
@@ -66,6 +69,7 @@ class FastVecEnv(VecEnv):
             self.is_scenario[sl] = w.actors is not None
         self.a_prev = np.zeros(n, dtype=np.float64)
         self._actions = np.zeros((n, 2))
+        self._stack = np.zeros((n, self.n_stack, spec.n_rays), np.float32)
         if seed is not None:
             self.seed(seed)
 
@@ -83,7 +87,12 @@ class FastVecEnv(VecEnv):
         self._reset_options()
         self.a_prev[:] = 0.0
         self.reset_infos = [{} for _ in range(self.num_envs)]
-        return obs
+        self._stack[:] = obs[:, None]
+        return self._stacked()
+
+    def _stacked(self) -> np.ndarray:
+        """The observations: each world's newest ``n_stack`` scans, newest first, flattened."""
+        return self._stack.reshape(self.num_envs, -1).copy() if self.n_stack > 1 else self._stack[:, 0].copy()
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
@@ -105,6 +114,9 @@ class FastVecEnv(VecEnv):
         if self.settings.contact_penalty:
             rewards = rewards + np.float32(self.settings.contact_penalty) * collided
         self.a_prev[:] = a_delta
+        self._stack[:, 1:] = self._stack[:, :-1]
+        self._stack[:, 0] = obs
+        obs = self._stacked()
         dones = collided | truncated
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         if dones.any():
@@ -118,7 +130,8 @@ class FastVecEnv(VecEnv):
                 idx = np.flatnonzero(dones[sl])
                 if idx.size:
                     w.reset_worlds(idx)
-                    obs[sl] = w.agent_obs()
+                    self._stack[sl][idx] = w.agent_obs()[idx][:, None]  # a new episode: no history
+            obs = self._stacked()
             self.a_prev[dones] = 0.0
         return obs, rewards, dones, infos
 

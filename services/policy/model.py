@@ -53,6 +53,11 @@ class NumpyPolicy:
             raise ValueError("policy weights: layer sizes do not chain")
         self.log_std = np.asarray(arrays.get("log_std", np.zeros(self.w2.shape[1])), np.float32)
         self.obs_dim, self.act_dim = self.w0.shape[0], self.w2.shape[1]
+        self.metadata = dict(metadata or {})
+        self.obs_stack = int(self.metadata.get("obs_stack", 1))
+        """Scans per observation, newest first (1: the paper's single scan)."""
+        if self.obs_stack < 1 or self.obs_dim % self.obs_stack:
+            raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the input size {self.obs_dim}")
         self.normalize = "obs_mean" in arrays
         if self.normalize:
             mean = np.asarray(arrays["obs_mean"], np.float64)
@@ -66,7 +71,6 @@ class NumpyPolicy:
             self.obs_inv_std = (1.0 / np.sqrt(var + self.obs_eps)).astype(np.float32)
             self.obs_var = var.astype(np.float32)
             self.obs_clip = float(arrays.get("obs_clip", 10.0))
-        self.metadata = dict(metadata or {})
 
     def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
         """The observation as the network sees it (float32; identity without normalisation)."""
@@ -181,3 +185,29 @@ def export_policy(sb3_model, path: str | Path, metadata: dict[str, Any] | None =
     np.savez(path, **arrays)
     path.with_suffix(".json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
     return path
+
+
+class ScanStack:
+    """The newest ``n`` observations of one car, newest first, as the training env stacks them:
+    after a reset (or a gap: a lost scan, a new episode) the stack is filled with the current one.
+
+    :param n: scans per observation (a policy's ``obs_stack``).
+    """
+
+    def __init__(self, n: int):
+        self.n = int(n)
+        self.buf: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.buf = None
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Push one observation (R,) and return the stack (n * R,)."""
+        obs = np.asarray(obs, dtype=np.float32)
+        if self.n == 1:
+            return obs
+        if self.buf is None or self.buf.shape[1] != obs.shape[0]:
+            self.buf = np.repeat(obs[None], self.n, axis=0)
+        else:
+            self.buf = np.concatenate([obs[None], self.buf[:-1]])
+        return self.buf.reshape(-1)

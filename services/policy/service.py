@@ -20,6 +20,7 @@ from racecav.common.lidar import sanitize
 from racecav.common.messages import Scan
 from racecav.common.vehicle import load_car
 from racecav.services.controller import ControllerService
+from racecav.services.policy.model import ScanStack
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -48,9 +49,14 @@ class PolicyService(ControllerService):
         super().__init__(cfg, "policy", car, pcfg.max_scan_age_s)
         self.model_ref = pcfg.model
         self.policy = policy if policy is not None else load_policy(pcfg.model)
-        if self.policy.obs_dim != self.spec.n_rays:
-            raise ValueError(f"policy {self.model_ref!r}: expects {self.policy.obs_dim} rays, "
-                             f"the car's lidar has {self.spec.n_rays}")
+        k = self.policy.obs_stack
+        if self.policy.obs_dim != k * self.spec.n_rays:
+            raise ValueError(f"policy {self.model_ref!r}: expects {self.policy.obs_dim} inputs ({k} scan(s)), "
+                             f"the car's lidar has {self.spec.n_rays} rays")
+        # a stacked policy (metadata obs_stack > 1) sees the newest k scans, newest first, as in
+        # training; a lost scan or a new episode (a stamp gap) restarts the stack
+        self.stack = ScanStack(k)
+        self._last = (None, 0)  # (seq, stamp_ns) of the previous scan answered
         self.backend = pcfg.backend
         if self.backend == "fused":
             from racecav.services.policy.fused import FusedPolicy
@@ -68,11 +74,19 @@ class PolicyService(ControllerService):
         return sanitize(scan.ranges, self.spec)
 
     def act(self, scan: Scan) -> tuple[float, float]:
-        return self.fused(scan.ranges)
+        if self.stack.n == 1:
+            return self.fused(scan.ranges)
+        seq, stamp = self._last
+        if seq is not None and scan.seq == seq and self.stack.buf is not None:
+            return self.fused(self.stack.buf.reshape(-1))  # the same scan again (lockstep republish)
+        if seq is None or scan.seq != seq + 1 or scan.stamp_ns - stamp > 1.5 * scan.scan_time * 1e9:
+            self.stack.reset()
+        self._last = (scan.seq, scan.stamp_ns)
+        return self.fused(self.stack(scan.ranges))
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "model": self.model_ref, "backend": self.backend, "normalize": self.policy.normalize,
-                "n_params": self.policy.n_params}
+                "n_params": self.policy.n_params, "obs_stack": self.policy.obs_stack}
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
