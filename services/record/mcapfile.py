@@ -42,7 +42,8 @@ ROS_COPIES: dict[str, tuple[str, str]] = {
 """Bus leaf -> (ROS 2 topic, type) of the CDR copies."""
 _LEAF_CLASS = {keys.SCAN: Scan, keys.STATE: VehicleState, keys.CMD: DriveCommand}
 
-# rosbag2's YAML for one offered QoS profile: reliable, volatile, keep_last 10, defaults else.
+# rosbag2's YAML (bag version <= 8: integer enums) for one offered QoS profile: reliable,
+# volatile, keep_last 10, defaults else.
 _QOS = ("- history: 1\n  depth: 10\n  reliability: 1\n  durability: 2\n"
         "  deadline:\n    sec: 9223372036\n    nsec: 854775807\n"
         "  lifespan:\n    sec: 9223372036\n    nsec: 854775807\n"
@@ -159,6 +160,9 @@ class RunWriter:
         if self._file.closed:
             return
         self._w.add_metadata("racecav", {k: str(v) for k, v in self._meta.items()})
+        # rosbag2's MCAP storage reads the QoS YAML by the bag version of this record; an empty
+        # serialized_metadata means version 8, whose integer QoS enums _QOS uses (Humble to Jazzy).
+        self._w.add_metadata("rosbag2", {"serialized_metadata": ""})
         self._w.finish()
         self._file.close()
 
