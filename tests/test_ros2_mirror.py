@@ -245,3 +245,27 @@ def test_sim_policy_mirror_end_to_end(spawn, session, tmp_path):
         c = cmds[idl.stamp_ns(ad.header)]
         assert ad.drive.steering_angle == pytest.approx(c.steering_angle, abs=1e-6)
         assert ad.drive.speed == pytest.approx(steady_speed(c.throttle, car, car.agent_speed_scale), abs=1e-5)
+
+
+def test_ros_drive_drives_the_sim(spawn, session):
+    """ROS /drive -> racecav ros2 -> drive_ros -> the sim's mux: with no controller running, the
+    AckermannDriveStamped commands drive the simulated car (F1TENTH's /drive convention)."""
+    ros = spawn("ros2")
+    procs.wait_alive(session, "car0", "ros2", proc=ros)
+    # realtime, clock running from the start (its wait for a first command watches the
+    # controller key only)
+    sim = spawn("sim", "--mode", "realtime", env={"RACECAV_SIM__WAIT_FOR_CONTROLLER": "false"})
+    procs.wait_alive(session, "car0", "sim", proc=sim)
+    states: list[VehicleState] = []
+    sub = session.declare_subscriber(keys.topic("car0", keys.STATE),
+                                     lambda s: states.append(decode(s.payload.to_bytes(), VehicleState)))
+    key = f"0/drive/ackermann_msgs::msg::dds_::AckermannDriveStamped_/{ACKERMANN_STAMPED_HASH}"
+    pub = session.declare_publisher(key)
+    for i in range(30):  # 1.5 s at 20 Hz, steering left
+        pub.put(idl.drive_cdr(0.25, 1.5), attachment=attachment(i + 1, time.time_ns(), bytes(16)))
+        time.sleep(0.05)
+    info = get_status(session, "car0", "sim").info
+    pub.undeclare()
+    sub.undeclare()
+    assert info["last_source"] == "ros" and info["mux"]["accepted_by"].get("ros", 0) > 0, {k: info.get(k) for k in ("mux", "started", "episode", "done", "steps", "last_source")}
+    assert states and max(s.steering_angle for s in states) > 0.1  # the car steers left as asked
