@@ -405,7 +405,14 @@ class Service:
             signal.signal(signal.SIGINT, self.request_stop)
             signal.signal(signal.SIGTERM, self.request_stop)
         watchdog_s = int(os.environ.get("WATCHDOG_USEC", "0")) / 2e6
-        self.open()
+        try:
+            self.open()
+        except BaseException:  # a failed setup(): undeclare and close (an open session can hang the exit)
+            try:
+                self.close()
+            except Exception as e:  # the setup error is the one to report
+                self.log.debug("close after a failed setup: %s", e)
+            raise
         try:
             self.log.info("%s started on car %s", self.name, self.car)
             sd_notify("READY=1")
