@@ -33,7 +33,7 @@ from racecav.common.config import Config
 OUT_DIR = Path("runs/eval")
 
 
-CONTROLLER_NAMES = ("drl-reversed", "drl-default", "drl-racing", "mpc-apf", "scripted", "full-throttle",
+CONTROLLER_NAMES = ("drl-avoid", "drl-reversed", "drl-default", "drl-racing", "mpc-apf", "scripted", "full-throttle",
                     "mpc-apf-fast")
 """= harness.CONTROLLERS' keys (a test checks), spelled here so that building the CLI parser does
 not import the harness."""
@@ -43,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", help="scenario name (right-to-left, head-to-head, left-to-right, ...) "
                    "or a scenario TOML file (schema: docs/world.md)")
     p.add_argument("--controller", choices=CONTROLLER_NAMES,
-                   help="drl-reversed | drl-default | drl-racing (racecav policy --model ...), mpc-apf "
+                   help="drl-avoid | drl-reversed | drl-default | drl-racing (racecav policy --model ...), mpc-apf "
                    "(racecav baseline), mpc-apf-fast (the baseline at v_ref 2.7 m/s), scripted / full-throttle "
                    "(straight ahead at 1 m/s / full throttle, no evasion: references)")
     p.add_argument("--model", type=Path, help="drl-* controllers: evaluate this policy .npz instead of the "
@@ -56,6 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--suite: trials per scenario file (default 5: 100 per family of 20 files)")
     p.add_argument("--table", action="store_true",
                    help="every controller x the three intersection scenarios; writes docs/results.md")
+    p.add_argument("--sections", help="--table: comma-separated subset of table1,conflict,suite (default all: "
+                   "the paper's Table 1, the conflict-timed paper scenarios, the suite's test split per family)")
     p.add_argument("--controllers", help="--table: comma-separated subset "
                    "(default: mpc-apf,drl-default,drl-reversed,scripted,full-throttle,mpc-apf-fast)")
     p.add_argument("--trials", type=int, help="trials per scenario (default 10; --table: 100)")

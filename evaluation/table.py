@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 import sys
 import time
 from pathlib import Path
@@ -25,7 +26,11 @@ PAPER_TABLE1 = {  # success rates, 10 hardware trials each, obstacle at 1 m/s (p
     "drl-reversed": (0.8, 0.6, 0.7),
 }
 PAPER_TABLE2 = {"mpc-apf": (960_000, 13.2), "drl-reversed": (30_466, 0.206), "drl-default": (30_466, 0.206)}
-DEFAULT_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed", "scripted", "full-throttle", "mpc-apf-fast")
+DEFAULT_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed", "drl-avoid", "scripted", "full-throttle",
+                       "mpc-apf-fast")
+CONFLICT = tuple(f"conflict-{s}" for s in SCENARIOS)
+"""The paper's three scenarios timed by the ego (common/data/scenarios/conflict-*.toml)."""
+SECTIONS = ("table1", "conflict", "suite")
 IMG_DIR = Path("docs/img")
 
 
@@ -58,6 +63,22 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
 
     names = [c.strip() for c in (args.controllers or ",".join(DEFAULT_CONTROLLERS)).split(",") if c.strip()]
+    if not args.controllers:  # the default list: a policy not shipped yet is left out, not an error
+        names = [n for n in names if n in CONTROLLERS and not missing(CONTROLLERS[n])]
+    sections = [x.strip() for x in (args.sections or ",".join(SECTIONS)).split(",") if x.strip()]
+    if set(sections) - set(SECTIONS):
+        print(f"racecav eval --table: unknown section(s) {sorted(set(sections) - set(SECTIONS))}; known: {SECTIONS}",
+              file=sys.stderr)
+        return 2
+    suite_cells_ = []
+    if "suite" in sections:
+        from racecav.evaluation.suite_eval import suite_cells
+
+        try:
+            suite_name, suite_cells_ = suite_cells(args.suite or "conflicts", "test")
+        except ValueError as e:
+            print(f"racecav eval --table: {e}", file=sys.stderr)
+            return 2
     unknown = [n for n in names if n not in CONTROLLERS]
     if unknown:
         print(f"racecav eval --table: unknown controller(s) {unknown}; known: {sorted(CONTROLLERS)}", file=sys.stderr)
@@ -74,24 +95,37 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print("racecav eval: --trials must be >= 1", file=sys.stderr)
         return 2
     out = args.out_dir / "table"
-    seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in SCENARIOS}
+    scen = (list(SCENARIOS) if "table1" in sections else []) + (list(CONFLICT) if "conflict" in sections else [])
+    seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in scen}
+    k_suite = args.trials_per_scenario
     results: dict[tuple[str, str], object] = {}
+    suite_results: dict[str, dict] = {}
     wall0 = time.monotonic()
     error = None
-    bar = NoBar() if args.no_progress else tqdm(total=len(names) * len(SCENARIOS) * trials, unit="trial",
-                                                 desc="table", dynamic_ncols=True, mininterval=1.0)
+    total = len(names) * (len(scen) * trials + len(suite_cells_) * k_suite)
+    bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="table", dynamic_ncols=True,
+                                                 mininterval=1.0)
     try:
         for name in names:
             ctrl = CONTROLLERS[name]
             bar.set_description_str(name)
+            first = scen[0] if scen else str(suite_cells_[0].path.resolve())
             try:
-                with Harness(cfg, ctrl, args.mode, SCENARIOS[0], out / "logs" / name, args.real_time_factor) as h:
-                    for sc in SCENARIOS:
+                with Harness(cfg, ctrl, args.mode, first, out / "logs" / name, args.real_time_factor) as h:
+                    for sc in scen:
                         stem = f"{name}-{sc}" + ("" if args.mode == "lockstep" else f"-{args.mode}")
                         res, error = run_trials(h, sc, SCENARIOS_DIR / f"{sc}.toml", trials, seeds[sc],
                                                 out / f"{stem}.jsonl", args.resume, bar=bar)
                         results[(name, sc)] = res
                         write_json(res, out / f"{stem}.json")
+                        if error is not None:
+                            raise error
+                    if suite_cells_:
+                        from racecav.evaluation.suite_eval import run_cells
+
+                        suite_results[name], error = run_cells(
+                            h, suite_cells_, k_suite, args.seed or 0, out / f"suite-{suite_name}" / name,
+                            args.resume, bar)
                         if error is not None:
                             raise error
             except HarnessError as e:
@@ -102,7 +136,15 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     finally:
         bar.close()
     wall = time.monotonic() - wall0
-    doc = write_results_doc(results, names, trials, seeds, args, wall, error)
+    suite = None
+    if suite_cells_:
+        from racecav.evaluation.suite_eval import suite_json
+
+        suite = {n: suite_json(suite_name, "test", n, k_suite, args.seed or 0, suite_cells_, r, 0.0, None)
+                 for n, r in suite_results.items()}
+        for n, doc_ in suite.items():
+            (out / f"suite-{suite_name}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
+    doc = write_results_doc(results, names, trials, seeds, args, wall, error, sections=sections, suite=suite)
     for name in names:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
         print(f"{CONTROLLERS[name].label:34s} " + "  ".join(
@@ -115,7 +157,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
-                      error) -> Path:
+                      error, sections=SECTIONS, suite: dict | None = None) -> Path:
     """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4."""
     from racecav.common.bench import machine
     from racecav.common.scenario import load_scenario
@@ -128,6 +170,12 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     doc = Path(args.doc)
     img = doc.parent / "img"
     cmd = "racecav eval --table" + (f" --trials {trials}" if trials != 100 else "")
+    if args.sections:
+        cmd += f" --sections {args.sections}"
+    if suite and args.suite:
+        cmd += f" --suite {args.suite}"
+    if getattr(args, "trials_per_scenario", 5) != 5:
+        cmd += f" --trials-per-scenario {args.trials_per_scenario}"
     if args.controllers:
         cmd += f" --controllers {args.controllers}"
     if args.mode != "lockstep":
@@ -221,6 +269,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         lines += ["## Trajectories (the paper's Figure 4)", "",
                   f"{CONTROLLERS[fig_ctrl].label}, the first trial (by seed, not picked) of each scenario.", "",
                   f"![trajectories]({fig.relative_to(doc.parent)})", ""]
+    lines += _conflict_sections(results, names, trials, seeds, suite, img, doc)
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # add --resume to continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "
@@ -228,3 +277,74 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))
     return doc
+
+
+def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict, suite: dict | None,
+                       img: Path, doc: Path) -> list[str]:
+    """docs/results.md: the conflict-timed paper scenarios and the suite's test split, per family."""
+    from racecav.evaluation.harness import CONTROLLERS
+    from racecav.evaluation.plots import plot_success_bars
+
+    lines: list[str] = []
+    have = [n for n in names if any((n, c) in results for c in CONFLICT)]
+    if have:
+        lines += ["## Conflict-timed paper scenarios: avoidance, not speed", "",
+                  "The same three scenarios with the obstacle timed by the ego (common/data/scenarios/conflict-*.toml): "
+                  "it waits until the ego is 4 s from the crossing centre at its current speed, then re-solves its "
+                  "speed every control period (0.5-2.0 m/s) to arrive there together with the ego, and holds its "
+                  "speed once the ego is within 1.0 m or 0.8 s (common/actors.py). A car that does not evade collides "
+                  f"at any speed. {trials} trials per cell (trial i: seed {next(iter(seeds.values()), 0)} + i), "
+                  "95 % Wilson intervals; the reference rows must be near 0.", "",
+                  "| controller | " + " | ".join(f"{SHORT[s]} conflict" for s in SCENARIOS)
+                  + " | collisions | median min gap (m) |",
+                  "|---|" + "---:|" * (len(SCENARIOS) + 2)]
+        rows = []
+        for n in have:
+            rs = [results.get((n, c)) for c in CONFLICT]
+            cells = [cell_text(r) if r else "not run" for r in rs]
+            coll = sum(r.summary.collisions for r in rs if r)
+            gaps = [r.summary.median_min_gap_m for r in rs if r and r.summary.median_min_gap_m is not None]
+            lines.append(f"| {CONTROLLERS[n].label} | " + " | ".join(cells) + f" | {coll} | "
+                         + ("/".join(f"{g:.2f}" for g in gaps) or "n/a") + " |")
+            rows.append((CONTROLLERS[n].label, [(r.summary.success_rate, tuple(r.summary.ci95) if r.summary.ci95
+                                                 else None, None) if r else (None, None, None) for r in rs]))
+        chart = plot_success_bars(rows, [f"{SHORT[s]} conflict" for s in SCENARIOS], img / "results-conflict.png",
+                                  title=f"Conflict-timed paper scenarios, {trials} sim trials per cell (95 % CI)")
+        lines += ["", f"![conflict-timed]({chart.relative_to(doc.parent)})", ""]
+    if suite:
+        first = next(iter(suite.values()))
+        fams = list(first["families"])
+        lines += [f"## Conflict suite `{first['suite']}`, test split, per family", "",
+                  f"`racecav suite generate --name {first['suite']}` (families: common/data/suites/"
+                  f"{first['suite']}.toml, docs/world.md), test split: {len(first['scenarios'])} files, "
+                  f"{first['trials_per_scenario']} trials each (trial i: seed {first['base_seed']} + i), through "
+                  "the services like every cell here. Never used in training or selection (training: the train "
+                  "split; selection: the train split with selection seeds). Success per family and overall, 95 % "
+                  "Wilson intervals.", "",
+                  "| controller | " + " | ".join(fams) + " | overall |", "|---|" + "---:|" * (len(fams) + 1)]
+
+        def txt(sm: dict) -> str:
+            if not sm["trials"]:
+                return "not run"
+            lo, hi = sm["ci95"]
+            return f"**{100 * sm['success_rate']:.0f}** [{100 * lo:.0f}, {100 * hi:.0f}]"
+        rows = []
+        for n, d in suite.items():
+            lines.append(f"| {CONTROLLERS[n].label} | " + " | ".join(txt(d["families"][f]) for f in fams)
+                         + f" | {txt(d['summary'])} |")
+            rows.append((CONTROLLERS[n].label, [(d["families"][f]["success_rate"],
+                                                 tuple(d["families"][f]["ci95"]) if d["families"][f]["ci95"] else None,
+                                                 None) for f in fams]))
+        chart = plot_success_bars(rows, fams, img / "results-suite.png",
+                                  title=f"Conflict suite {first['suite']} (test split), per family (95 % CI)")
+        lines += ["", f"![suite]({chart.relative_to(doc.parent)})", "",
+                  "| controller | trials | collisions | median min gap (m) | mean progress (m) |",
+                  "|---|---:|---:|---:|---:|"]
+        for n, d in suite.items():
+            sm = d["summary"]
+            g, prog = sm["median_min_gap_m"], sm["mean_progress_m"]
+            g = "n/a" if g is None else f"{g:.2f}"
+            prog = "n/a" if prog is None else f"{prog:.2f}"
+            lines.append(f"| {CONTROLLERS[n].label} | {sm['trials']} | {sm['collisions']} | {g} | {prog} |")
+        lines.append("")
+    return lines
