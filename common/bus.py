@@ -345,12 +345,20 @@ class Service:
             self.errors += 1
             self._record_error(f"status info: {type(e).__name__}: {e}", e)
             info = {"info_error": self.last_error}
-        return ServiceStatus(
+        st = ServiceStatus(
             stamp_ns=time.monotonic_ns(), seq=self._status_seq, service=self.name, car=self.car,
             pid=os.getpid(), uptime_s=time.monotonic() - self._started, received=self.received,
             published=self.published, invalid=self.invalid, dropped=self.dropped, errors=self.errors,
             last_error=self.last_error, config_digest=self._config_digest, info=info,
             outputs=outputs)
+        try:
+            encode(st)  # e.g. an integer beyond 64 bits in info: report that, keep answering
+        except ValueError as e:
+            self.errors += 1
+            self._record_error(f"status: {e}")
+            st = st.model_copy(update={"info": {"info_error": str(e)[:500]}, "outputs": {},
+                                       "errors": self.errors, "last_error": self.last_error})
+        return st
 
     # --- life cycle -------------------------------------------------------------------------
 

@@ -169,3 +169,18 @@ def test_hostile_payloads_on_every_key_and_query(services, session):
     info = get_status(session, CAR, "actuator").info
     assert info["estop"] is False and info["accepted_by"]["controller"] >= acc + 10, info
     assert [r for r in vesc.frames() if r.t > t]
+
+
+def test_status_survives_an_unencodable_info_value():
+    # sim/reset once accepted seed 2^70; the status carried it and every status query failed
+    from racecav.common.bus import Service
+    from racecav.common.codec import decode
+    from racecav.common.config import load_config
+
+    class Odd(Service):
+        def info(self):
+            return {"seed": 2**70}
+
+    svc = Odd(load_config(), "odd")
+    st = decode(encode(svc.status()))
+    assert "info_error" in st.info and st.errors == 1 and "Integer" in st.last_error
