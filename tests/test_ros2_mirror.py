@@ -116,7 +116,8 @@ def _wait(pred, timeout: float, what: str) -> None:
 def test_mirror_modes_and_drive_input(mode, spawn, session, router, bus_cfg, tmp_path):
     """A Scan in -> a LaserScan on the mode's key (and a ROS /drive -> a DriveCommand), for each
     mode; "second-router": the ROS side is its own Zenoh network (an rmw_zenohd stand-in)."""
-    env = {"RACECAV_ROS2__STAMPS": "source"}
+    # header stamps: the racecav stamp ("source"), or the arrival wall clock (the default; bridge case)
+    env = {} if mode == "bridge" else {"RACECAV_ROS2__STAMPS": "source"}
     ros_session, ros_router = session, None
     if mode == "second-router":
         from racecav.common.client import open_session
@@ -159,7 +160,10 @@ def test_mirror_modes_and_drive_input(mode, spawn, session, router, bus_cfg, tmp
         for (_k, payload, att), s in zip(cap.on(scan_key), scans):
             ls = idl.LaserScan.deserialize(payload)
             assert payload[:4] == b"\x00\x01\x00\x00"  # CDR little-endian encapsulation
-            assert idl.stamp_ns(ls.header) == s.stamp_ns and ls.header.frame_id == "laser"
+            if mode == "bridge":
+                assert abs(idl.stamp_ns(ls.header) - time.time_ns()) < 5e9 and ls.header.frame_id == "laser"
+            else:
+                assert idl.stamp_ns(ls.header) == s.stamp_ns and ls.header.frame_id == "laser"
             assert np.array_equal(np.asarray(ls.ranges, np.float32), s.ranges)
             assert ls.angle_min == pytest.approx(s.angle_min, abs=1e-7) and len(ls.intensities) == 0
             if rmw:

@@ -92,8 +92,8 @@ class Ros2Service(Service):
         self.outs: dict[str, RosTopicOut] = {}
         self._q: queue.SimpleQueue = queue.SimpleQueue()
 
-    def _stamp(self, msg: Message) -> int:
-        return time.time_ns() if self.rcfg.stamps == "wall" else msg.stamp_ns
+    def _stamp(self, msg: Message, arrival_ns: int) -> int:
+        return arrival_ns if self.rcfg.stamps == "wall" else msg.stamp_ns
 
     def setup(self) -> None:
         import os
@@ -143,15 +143,15 @@ class Ros2Service(Service):
     def _mirror(self, out: RosTopicOut, convert) -> Callable[[Message], None]:
         def on_msg(msg: Message) -> None:
             if self.rcfg.batch_s > 0:  # converted and sent by the loop, after the control path's burst
-                self._q.put((out, convert, msg))
+                self._q.put((out, convert, msg, time.time_ns()))
             else:
-                self._send(out, convert, msg)
+                self._send(out, convert, msg, time.time_ns())
 
         return on_msg
 
-    def _send(self, out: RosTopicOut, convert, msg: Message) -> None:
+    def _send(self, out: RosTopicOut, convert, msg: Message, arrival_ns: int) -> None:
         try:
-            out.put(convert(msg, self._stamp(msg)))
+            out.put(convert(msg, self._stamp(msg, arrival_ns)))
         except Exception as e:  # a conversion bug must not kill the thread
             self.invalid += 1
             self._record_error(f"mirror {out.topic}: {type(e).__name__}: {e}")
