@@ -146,9 +146,6 @@ class Viz(Service):
         ]), log_time=now)
         self._ego_state = st
         self.counts["state"] += 1
-        if self._walls is not None and time.monotonic() - self._last_walls > 2.0:
-            self._last_walls = time.monotonic()
-            self._log_walls(now)
 
     def _box(self, ident: str, x: float, y: float, yaw: float, length: float, width: float, rgba, now: int):
         from foxglove.messages import Color, CubePrimitive, Duration, Pose, SceneEntity, Vector3
@@ -195,6 +192,13 @@ class Viz(Service):
         self.counts["cmd"] += 1
 
     # ------------------------------------------------------------------ life cycle
+    def step(self) -> None:
+        # the walls do not change: re-sent every 2 s for viewers that connect later
+        if self._walls is not None and time.monotonic() - self._last_walls > 2.0:
+            self._last_walls = time.monotonic()
+            self._log_walls(time.time_ns())
+        self.stop_event.wait(0.2)
+
     def info(self) -> dict[str, Any]:
         return {"url": f"ws://{self.host}:{self.server.port}" if self.server else "", "world": self.world_name,
                 "mcap": self.mcap_path or "", "messages": dict(self.counts)}
