@@ -194,3 +194,20 @@ def test_eval_record_writes_one_file_per_trial(tmp_path):
     for t in trials:
         _car, scans, recorded = load_run(rec_dir / f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap")
         assert len(scans) == t["steps"] and len(recorded) == t["commands"]
+
+
+def test_real_sensor_scans_are_restamped(spawn, session, router, tmp_path):
+    """Scans recorded from the real sensor carry that host's (old) monotonic stamps: replay
+    re-stamps them as it sends them, or the policy would drop every one as stale."""
+    import json
+
+    path = tmp_path / "real.mcap"
+    w = RunWriter(path, "car0")
+    for i in range(20):
+        w.write("racecav/car0/scan", encode(_scan(i).model_copy(update={"source": "real", "stamp_ns": 1_000 + i * 100_000_000})))
+    w.close()
+    pol = spawn("policy")
+    procs.wait_alive(session, "car0", "policy", proc=pol)
+    r = _replay(procs.bus_env(router), str(path), "--lockstep", "--json", str(tmp_path / "rep.json"))
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert r.returncode == 0 and rep["answered"] == 20 and rep["recorded_answers"] == 0, r.stdout
