@@ -71,7 +71,7 @@ def test_graph_names_per_mode():
 
     h = Graph("humble", 0, "z", "racecav")
     assert h.data_key("/scan", msgs.LASER_SCAN).endswith("/TypeHashNotSupported")
-    assert len(h.entity_token("MP", "/scan", msgs.LASER_SCAN)[1]) == 24
+    assert len(h.entity_token("MP", "/scan", msgs.LASER_SCAN)[1]) == 16
     b = Graph("bridge", 0, "z", "racecav", bridge_prefix="car0")
     assert b.data_key("/scan", msgs.LASER_SCAN) == "car0/scan"
     assert b.node_token() is None and b.entity_token("MP", "/scan", msgs.LASER_SCAN) == (None, b"")
@@ -168,8 +168,8 @@ def test_mirror_modes_and_drive_input(mode, spawn, session, router, bus_cfg, tmp
             assert ls.angle_min == pytest.approx(s.angle_min, abs=1e-7) and len(ls.intensities) == 0
             if rmw:
                 seq, ts, gid = parse_attachment(att)
-                assert len(att) == (41 if mode == "humble" else 33)
-                assert abs(ts - time.time_ns()) < 5e9 and len(gid) == (24 if mode == "humble" else 16)
+                assert len(att) == 33
+                assert abs(ts - time.time_ns()) < 5e9 and len(gid) == 16
             else:
                 assert att is None
         if rmw:

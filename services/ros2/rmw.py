@@ -9,8 +9,9 @@ rmw_zenoh_cpp/src/detail/liveliness_utils.cpp, attachment_helpers.cpp; zenoh-plu
   drops it; the graph is discovered through liveliness tokens
   ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``
   with ``/`` in names replaced by ``%``.
-- ``humble``: the same with ``TypeHashNotSupported`` in the hash slots and the gid at Humble's
-  RMW_GID_STORAGE_SIZE of 24 bytes (41-byte attachment).
+- ``humble``: the same with ``TypeHashNotSupported`` in the hash slots (rmw_zenoh on Humble
+  keeps the 16-byte gid and 33-byte attachment: projects that talk to Humble's rmw_zenoh_cpp,
+  e.g. nano-ros, send exactly that).
 - ``bridge`` (zenoh-bridge-ros2dds / zenoh-plugin-ros2dds): plain topic keys (``scan``, under the
   bridge's namespace prefix if it has one), CDR payload, no attachment, no tokens.
 """
@@ -29,7 +30,7 @@ QOS_DEFAULT = "1:2:1,10:,:,:,,"
 """Token QoS: reliable : volatile : keep_last,10 : deadline : lifespan : liveliness (the last
 three at their defaults). Written out in full so it parses whatever the reader's defaults."""
 
-GID_SIZE = {"rmw_zenoh": 16, "humble": 24, "bridge": 0}
+GID_SIZE = {"rmw_zenoh": 16, "humble": 16, "bridge": 0}
 
 
 def mangle(name: str) -> str:
