@@ -184,15 +184,67 @@ class BulletBackend:
         self.bw.close()
 
 
+class BulletScenarios:
+    """Scenario episodes on the PyBullet backend: each reset draws a scenario file and runs it in
+    a BulletWorld (rebuilt when the file changes), behind the fast world's step API."""
+
+    def __init__(self, scenarios: list, car, seed: int | None = None):
+        self.scenarios, self.car = scenarios, car
+        self.rng = np.random.default_rng(seed)
+        self.bw = None
+        self.spec = car.lidar
+        self.control_period = car.control_period_s
+        self.time_limit = np.full(1, np.inf)
+
+    def seed(self, seed: int | None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
+        from racecav.services.sim.bullet_world import BulletWorld
+
+        if seed is not None:
+            self.seed(seed)
+        sc = self.scenarios[int(self.rng.integers(len(self.scenarios)))]
+        if self.bw is None or self.bw.scenario is not sc:
+            if self.bw is not None:
+                self.bw.close()
+            self.bw = BulletWorld(sc, car=self.car)
+        self.time_limit[0] = sc.duration_s
+        return self.bw.reset(seed=int(self.rng.integers(2**31 - 1)), options=options)
+
+    def step(self, actions):
+        a = np.asarray(actions, dtype=np.float64).reshape(1, 2)
+        obs, _ri, collided, _info = self.bw.step(a)
+        return obs, (throttle_from_action(a[:, 0]), np.clip(a[:, 1], -1.0, 1.0)), collided, {}
+
+    @property
+    def time(self) -> np.ndarray:
+        return np.array([self.bw.t])
+
+    @property
+    def agent_state(self) -> np.ndarray:
+        return self.bw.agent_state()[None, :4]
+
+    def success(self) -> np.ndarray:
+        return np.array([self.bw.success()])
+
+    def close(self) -> None:
+        if self.bw is not None:
+            self.bw.close()
+
+
 class OvertakeEnv(gym.Env):
-    """One overtaking (or racing, with ``n_obstacles=0``) episode on the racetrack.
+    """One overtaking (or racing, with ``n_obstacles=0``) episode on the racetrack, or one
+    scenario episode (``scenarios``: a conflict suite's train split, a folder or a file).
 
     :param backend: "fast" or "bullet".
     :param heading: "default" (with traffic) or "reversed" (against it).
     :param n_obstacles: obstacle cars (0..15; 0 = the racing stage).
     :param driver: traffic driver ("centerline", "policy:PATH", or a TrafficDriver/callable).
     :param control_period: seconds per step (default: the car's, 0.1 s).
-    :param time_limit: episode time limit in seconds (truncation).
+    :param time_limit: episode time limit in seconds (truncation; scenario episodes: their duration).
+    :param scenarios: scenario episodes instead of traffic (each reset draws a file).
+    :param obs_stack: scans per observation, newest first.
     :param config: an EnvConfig to start from (keyword arguments override it).
     """
 
@@ -201,45 +253,83 @@ class OvertakeEnv(gym.Env):
     def __init__(self, backend: str | None = None, heading: str | None = None,
                  n_obstacles: int | None = None, driver=None, control_period: float | None = None,
                  time_limit: float | None = None, world: str | None = None, car: str | None = None,
-                 agent_speed_scale: float | None = None, config: EnvConfig | None = None):
+                 agent_speed_scale: float | None = None, scenarios: str | None = None,
+                 obs_stack: int | None = None, contact_penalty: float | None = None,
+                 config: EnvConfig | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend=backend, heading=heading,
                                      n_obstacles=n_obstacles,
                                      driver=driver if isinstance(driver, str) else None,
                                      control_period_s=control_period, time_limit_s=time_limit,
-                                     world=world, car=car, agent_speed_scale=agent_speed_scale)
-        self.world = make_world(self.settings, n_envs=1, driver=drv_obj)
+                                     world=world, car=car, agent_speed_scale=agent_speed_scale,
+                                     scenarios=scenarios, obs_stack=obs_stack, contact_penalty=contact_penalty,
+                                     scenario_share=1.0 if scenarios else None)
+        st = self.settings
+        if st.scenarios and st.backend == "bullet":
+            from racecav.common.scenario import load_scenario, scenario_files
+            from racecav.common.vehicle import load_car
+
+            self.worlds = [BulletScenarios([load_scenario(f) for f in scenario_files(st.scenarios, "train")],
+                                           load_car(st.car))]
+            self.weights = np.ones(1)
+        elif st.scenarios:  # one fast world per world geometry, drawn by their number of files
+            self.worlds = make_worlds(st, n_envs=1, driver=drv_obj)
+            self.weights = np.array([len(w.scenarios) for w in self.worlds], float)
+        else:
+            self.worlds = [make_world(st, n_envs=1, driver=drv_obj)]
+            self.weights = np.ones(1)
+        self.weights /= self.weights.sum()
+        self.world = self.worlds[0]
         spec = self.world.spec
-        self.observation_space = gym.spaces.Box(spec.range_min, spec.range_max, (spec.n_rays,), np.float32)
+        self.n_stack = st.obs_stack
+        self.observation_space = gym.spaces.Box(spec.range_min, spec.range_max, (self.n_stack * spec.n_rays,),
+                                                np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.dt = self.world.control_period
-        self.max_steps = int(round(self.settings.time_limit_s / self.dt))
+        self.max_steps = int(round(st.time_limit_s / self.dt))
         self._steps = 0
         self._a_prev = 0.0
+        self._stack = None
+
+    def _observe(self, obs: np.ndarray, fresh: bool) -> np.ndarray:
+        from racecav.services.policy.model import ScanStack
+
+        if self._stack is None or fresh:
+            self._stack = ScanStack(self.n_stack)
+        return self._stack(obs).copy()
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
+        if len(self.worlds) > 1:
+            self.world = self.worlds[int(self.np_random.choice(len(self.worlds), p=self.weights))]
         self.world.seed(int(self.np_random.integers(2**63 - 1)))
         obs = self.world.reset(options=options)
         self._steps = 0
         self._a_prev = 0.0
-        return obs[0].copy(), {}
+        return self._observe(obs[0], fresh=True), {}
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(1, 2)
         obs, (throttle, a_delta), collided, info = self.world.step(a)
-        r = float(reward(throttle, self._a_prev, a_delta)[0])
+        r = float(reward(throttle, self._a_prev, a_delta)[0]) + self.settings.contact_penalty * bool(collided[0])
         self._a_prev = float(a_delta[0])
         self._steps += 1
         terminated = bool(collided[0])
-        truncated = (not terminated) and self._steps >= self.max_steps
+        scenario = bool(self.settings.scenarios)
+        if scenario:
+            truncated = (not terminated) and bool(self.world.time[0] >= self.world.time_limit[0] - 1e-9)
+        else:
+            truncated = (not terminated) and self._steps >= self.max_steps
         x, y, yaw, v = self.world.agent_state[0]
-        return obs[0].copy(), r, terminated, truncated, {
-            "x": float(x), "y": float(y), "yaw": float(yaw), "v": float(v),
-            "contact_wall": bool(info["wall"][0]), "contact_car": int(info["car"][0])}
+        out = {"x": float(x), "y": float(y), "yaw": float(yaw), "v": float(v)}
+        if "wall" in info:
+            out.update(contact_wall=bool(info["wall"][0]), contact_car=int(info["car"][0]))
+        if scenario and (terminated or truncated):
+            out["is_success"] = bool(self.world.success()[0])
+        return self._observe(obs[0], fresh=False), r, terminated, truncated, out
 
     def close(self):
-        close = getattr(self.world, "close", None)
-        if close:
-            close()
-
+        for w in self.worlds:
+            close = getattr(w, "close", None)
+            if close:
+                close()
