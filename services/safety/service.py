@@ -28,7 +28,7 @@ import numpy as np
 from racecav.common import keys
 from racecav.common.bus import Service
 from racecav.common.config import Config
-from racecav.common.messages import DriveCommand, Scan, VehicleState
+from racecav.common.messages import INT64_MAX, DriveCommand, Scan, VehicleState
 from racecav.common.vehicle import load_car
 from racecav.services.baseline.ego import EgoEstimator
 from racecav.services.safety.ttc import BrakeLogic
@@ -90,6 +90,7 @@ class SafetyService(Service):
                 steer = 0.0
             compute = time.perf_counter_ns() - t0
             stamp = time.monotonic_ns() if scan.source == "real" else scan.stamp_ns + compute
+            stamp = min(stamp, INT64_MAX)  # a scan stamped at the end of int64 must not overflow ours
             a_steer = float(np.clip(steer / self.car_params.steer_gain, -1.0, 1.0))
             self.pub.put(DriveCommand(stamp_ns=stamp, seq=self.logic.brake_scans, source="safety",
                                       a_throttle=-1.0, a_steer=a_steer, throttle=0.0, steering_angle=steer,
