@@ -138,6 +138,7 @@ def test_emulator_sigterm_removes_its_link(tmp_path):
                          stdout=subprocess.PIPE, text=True, start_new_session=True)
     try:
         assert p.stdout.readline().strip() == str(link) and link.is_symlink()
+        time.sleep(0.5)  # it installs its SIGTERM handler just after printing the path
         p.send_signal(signal.SIGTERM)
         assert p.wait(10) == 0
         assert not link.exists()

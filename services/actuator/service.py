@@ -175,6 +175,7 @@ class ActuatorService(Service):
 
     def _on_controller_alive(self, _name: str, alive: bool) -> None:
         self.controller_alive = alive
+        self.log.info("controller %s: liveliness %s", self.acfg.controller, "up" if alive else "lost")
         if not alive:  # every withdrawal, even if its appearance was not seen
             self.controller_lost += 1
             self.mux.lost(CMD)
