@@ -328,8 +328,15 @@ class Harness:
         try:
             if self.record_dir is not None:  # this trial's samples go to their own file
                 name = f"{Path(self.scenario_ref).stem}-{index:03d}-seed{seed}.mcap"
-                query_message(self.session, self.car_name, "record", "rotate",
-                              {"path": str(self.record_dir / name)}, timeout=10.0)
+                for attempt in range(50):  # alive (token) comes a moment before its queryables
+                    try:
+                        query_message(self.session, self.car_name, "record", "rotate",
+                                      {"path": str(self.record_dir / name)}, timeout=10.0)
+                        break
+                    except RuntimeError:
+                        if attempt == 49:
+                            raise
+                        time.sleep(0.1)
             if self._need_scenario:
                 rep = query_message(self.session, self.car_name, "sim", "scenario",
                                     {"name": self.scenario_ref, "seed": seed}, timeout=30.0)

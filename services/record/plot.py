@@ -85,8 +85,9 @@ def plot_run(path: str | Path, png: str | Path, car: str | None = None, world: s
         if new_cmds:
             pairs = [(c, new_cmds.get((c.scan_seq, c.scan_stamp_ns))) for c in cmds]
             tn = np.array([(c.stamp_ns - t0) / 1e9 for c, n in pairs if n is not None])
-            axc.plot(tn, [n.a_throttle for _c, n in pairs if n is not None], "--", color="tab:olive", label="a_T (replayed)")
-            axc.plot(tn, [n.a_steer for _c, n in pairs if n is not None], "--", color="tab:pink", label="a_delta (replayed)")
+            new = [n for _c, n in pairs if n is not None]
+            axc.plot(tn, [n.a_throttle for n in new], "--", color="tab:olive", label="a_T (replayed)")
+            axc.plot(tn, [n.a_steer for n in new], "--", color="tab:pink", label="a_delta (replayed)")
         axc.set_xlabel("time (s)")
         axc.set_ylabel("normalised action")
         axc.set_ylim(-1.05, 1.05)

@@ -35,7 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--no-ros", action="store_true", help="raw samples only, no ROS 2 CDR copies")
     p.add_argument("--name", default="record", help="service name (several recorders need different names)")
-    p.add_argument("--nice", type=int, default=10, help="niceness added to the recorder (default 10: below the controllers)")
+    p.add_argument("--nice", type=int, default=10,
+                   help="niceness added to the recorder (default 10: below the controllers)")
     p.epilog = EXAMPLES
     p.formatter_class = argparse.RawDescriptionHelpFormatter
 
@@ -65,6 +66,7 @@ class Recorder(Service):
                                 metadata={"config_digest": cfg.digest(), "keys": " ".join(exprs)})
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._t0 = time.monotonic()
+        self.linger_s = 0.3
         if nice:
             os.nice(nice)  # below the controllers: a busy CPU serves the control path first
 
@@ -129,6 +131,11 @@ class Recorder(Service):
         self._drain(None)
         if self.duration_s is not None and time.monotonic() - self._t0 >= self.duration_s:
             self.request_stop()
+
+    def teardown(self) -> None:
+        # Asked to stop: keep listening a moment for samples still on their way (the last command
+        # of a trial when `racecav eval --record` stops everything right after it).
+        time.sleep(self.linger_s)
 
     def info(self) -> dict[str, Any]:
         return {"file": str(self.writer.path), "messages": dict(self.writer.counts),

@@ -5,7 +5,8 @@ drive).
 The scans are the recorded bus payloads, republished on racecav/<car>/scan:
 - ``--rate R``: at their recorded pace (scan stamps), R times faster;
 - ``--lockstep``: one scan, wait for the command answering it, then the next (deterministic:
-  no scan is dropped or answered late, so the same weights give the same commands).
+  no scan is dropped or answered late, so the same weights give the same commands); a scan not
+  answered within 0.5 s is sent again until ``--timeout``.
 Scans recorded from the real sensor (source "real", stamped with that host's monotonic clock) are
 re-stamped with this host's clock as they are sent, or the controller would find them stale;
 answers are matched to scans by seq and stamp either way. Each new command is compared with the
@@ -68,7 +69,8 @@ def load_run(path: str | Path, car: str | None = None) -> tuple[str, list[Scan],
     cars = run_cars(samples)
     if car is None:
         if len(cars) != 1:
-            raise RunFileError(f"{path}: scans of {len(cars)} cars ({', '.join(cars) or 'none'}): pick one with --source-car")
+            raise RunFileError(f"{path}: scans of {len(cars)} cars ({', '.join(cars) or 'none'}): "
+                               "pick one with --source-car")
         car = cars[0]
     elif car not in cars:
         raise RunFileError(f"{path}: no scans of car {car!r} (cars: {', '.join(cars) or 'none'})")
@@ -129,7 +131,15 @@ def replay(session, car: str, scans: list[Scan], lockstep: bool, rate: float = 1
 
     answers = Answers(session, car)
     pub = session.declare_publisher(keys.topic(car, keys.SCAN))
-    sent: list[tuple[tuple[int, int], tuple[int, int]]] = []  # (original, as sent)
+    sent: list[tuple[tuple[int, int], list[tuple[int, int]]]] = []  # (original, as sent each time)
+
+    def send(scan: Scan) -> tuple[int, int]:
+        out = scan
+        if scan.source == "real":  # the controller judges real stamps against its own clock
+            out = scan.model_copy(update={"stamp_ns": time.monotonic_ns()})
+        pub.put(encode(out))
+        return out.seq, out.stamp_ns
+
     try:
         t0_wall, t0_stamp = time.monotonic(), scans[0].stamp_ns if scans else 0
         for scan in tqdm(scans, desc="replay", unit="scan", disable=None):
@@ -137,16 +147,23 @@ def replay(session, car: str, scans: list[Scan], lockstep: bool, rate: float = 1
                 delay = t0_wall + (scan.stamp_ns - t0_stamp) / 1e9 / rate - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            out = scan
-            if scan.source == "real":  # the controller judges real stamps against its own clock
-                out = scan.model_copy(update={"stamp_ns": time.monotonic_ns()})
-            pub.put(encode(out))
-            sent.append(((scan.seq, scan.stamp_ns), (out.seq, out.stamp_ns)))
+            key = send(scan)
+            sent.append(((scan.seq, scan.stamp_ns), [key]))
             if lockstep:
-                answers.wait((out.seq, out.stamp_ns), timeout)
+                # like the sim's lockstep: a scan not answered within 0.5 s is sent again (a
+                # controller that had not subscribed yet), until the timeout
+                deadline = time.monotonic() + timeout
+                while answers.wait(key, min(0.5, max(deadline - time.monotonic(), 0.0))) is None:
+                    if time.monotonic() >= deadline:
+                        break
+                    key = send(scan)
+                    sent[-1][1].append(key)
         if not lockstep and sent:  # the last answers are still on their way
-            answers.wait(sent[-1][1], min(timeout, 1.0))
-        return {orig: answers.by_scan.get(as_sent) for orig, as_sent in sent}
+            answers.wait(sent[-1][1][0], min(timeout, 1.0))
+        out: dict[tuple[int, int], DriveCommand | None] = {}
+        for orig, keys_sent in sent:
+            out[orig] = next((answers.by_scan[k] for k in keys_sent if k in answers.by_scan), None)
+        return out
     finally:
         pub.undeclare()
         answers.close()

@@ -12,9 +12,10 @@ In (ROS 2 -> racecav):
 In rmw_zenoh mode the node ``/racecav`` and its publishers and subscription hold the liveliness
 tokens ROS 2's graph is made of, so ``ros2 node list`` / ``ros2 topic list`` / ``ros2 topic echo
 /scan`` work against the same Zenoh network; keys, attachment and tokens are described in
-:mod:`racecav.services.ros2.rmw`. Conversion happens in the subscriber callback (6-10 us a message,
-``racecav bench record``), so nothing queues; the process runs at niceness +10 (``ros2.nice``). Invalid input on either side is counted
-and dropped.
+:mod:`racecav.services.ros2.rmw`. Outgoing messages are converted (6-10 us each,
+``racecav bench record``) and sent in 10 ms batches by the service loop, at niceness +10
+(``ros2.batch_s``, ``ros2.nice``): the mirror stays off the scan -> command burst. Invalid input
+on either side is counted and dropped.
 """
 
 from __future__ import annotations

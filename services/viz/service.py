@@ -83,7 +83,6 @@ class Viz(Service):
         self._lock = threading.Lock()
         self._scan_arrival: dict[tuple[int, int], int] = {}
         self._last_walls = 0.0
-        self._ego_state: VehicleState | None = None
         self.server = None
         self._mcap = None
 
@@ -134,7 +133,7 @@ class Viz(Service):
         self.counts["scan"] += 1
 
     def _on_state(self, st: VehicleState) -> None:
-        from foxglove.messages import FrameTransform, FrameTransforms, Vector3
+        from foxglove.messages import FrameTransform, FrameTransforms, SceneUpdate, Vector3
 
         now = time.time_ns()
         m = self.car_params.lidar_mount
@@ -144,8 +143,10 @@ class Viz(Service):
             FrameTransform(timestamp=_ts(now), parent_frame_id="base_link", child_frame_id="laser",
                            translation=Vector3(x=m.x, y=m.y, z=m.z), rotation=_quat(m.yaw)),
         ]), log_time=now)
-        self._ego_state = st
         self.counts["state"] += 1
+        self.ch_cars.log(SceneUpdate(entities=[self._box("ego", st.x, st.y, st.yaw, self.car_params.length,
+                                                         self.car_params.width, (0.2, 0.5, 0.9, 0.8), now)]),
+                         log_time=now)
 
     def _box(self, ident: str, x: float, y: float, yaw: float, length: float, width: float, rgba, now: int):
         from foxglove.messages import Color, CubePrimitive, Duration, Pose, SceneEntity, Vector3
@@ -161,21 +162,19 @@ class Viz(Service):
         now = time.time_ns()
         ents = [self._box(f"obstacle-{o.id}", o.x, o.y, o.yaw, o.length, o.width, (0.9, 0.3, 0.2, 0.8), now)
                 for o in obs.obstacles]
-        ego = self._ego_state
-        if ego is not None:
-            ents.append(self._box("ego", ego.x, ego.y, ego.yaw, self.car_params.length, self.car_params.width,
-                                  (0.2, 0.5, 0.9, 0.8), now))
         self.ch_cars.log(SceneUpdate(entities=ents), log_time=now)
         self.counts["obstacles"] += 1
 
     def _log_walls(self, now: int) -> None:
-        from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, Point3, Pose, SceneEntity, SceneUpdate, Vector3
+        from foxglove.messages import (Color, LinePrimitive, LinePrimitiveLineType, Point3, Pose, SceneEntity,
+                                       SceneUpdate, Vector3)
 
         pts = []
         for x0, y0, x1, y1 in self._walls:
             pts += [Point3(x=float(x0), y=float(y0), z=0.0), Point3(x=float(x1), y=float(y1), z=0.0)]
         ent = SceneEntity(timestamp=_ts(now), frame_id="odom", id="walls", lines=[LinePrimitive(
-            type=LinePrimitiveLineType.LineList, pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=_quat(0.0)),
+            type=LinePrimitiveLineType.LineList,
+            pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=_quat(0.0)),
             thickness=0.05, scale_invariant=False, points=pts, color=Color(r=0.8, g=0.8, b=0.8, a=1.0))])
         self.ch_walls.log(SceneUpdate(entities=[ent]), log_time=now)
 
