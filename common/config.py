@@ -272,6 +272,9 @@ class SafetyConfig(Section):
     """Model speed (m/s) before any state or command is known."""
     max_scan_age_s: float = Field(0.25, gt=0)
     """A real scan whose stamp is older than this is not judged (counted stale)."""
+    reset_jump_m: float = Field(1.0, gt=0)
+    """Two consecutive states this far apart mean the car was moved (a simulator reset, a
+    relocalisation): the brake logic starts over instead of carrying a brake into the new place."""
     steer_timeout_s: float = Field(0.25, gt=0)
     """The brake command keeps the controller's steering angle if its last command is younger
     than this, else it centres the wheels."""

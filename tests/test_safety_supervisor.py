@@ -159,9 +159,9 @@ def test_supervisor_brakes_before_a_wall_in_the_sim(spawn, session, tmp_path, sa
         assert info["collided"] and info["contact_with"] == "wall"
         return
     assert not info["collided"], info
-    assert info["safety_brakes"] >= 1 and info["mux"]["accepted_by"]["safety"] >= 1
-    assert s["brakes"] >= 1 and s["false_brake_candidates"] == 0 and s["speed_source"] == "state"
-    assert s["braking"]  # still holding the stopped car in front of the wall
+    assert info["safety_brakes"] >= 1 and info["mux"]["accepted_by"]["safety"] >= 1, info
+    assert s["brakes"] >= 1 and s["false_brake_candidates"] == 0 and s["speed_source"] == "state", s
+    assert s["braking"], s  # still holding the stopped car in front of the wall
 
 
 def test_supervisor_does_not_brake_while_a_policy_laps_the_empty_racetrack(spawn, session, tmp_path):

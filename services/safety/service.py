@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import threading
 import time
 from typing import Any
@@ -46,7 +47,8 @@ class SafetyService(Service):
                                 self.scfg.max_state_age_s)
         self._lock = threading.Lock()
         self._steer = (0.0, 0)         # controller's steering angle and its arrival (monotonic ns)
-        self.counts = {"scans": 0, "stale": 0, "commands": 0}
+        self.counts = {"scans": 0, "stale": 0, "commands": 0, "resets": 0}
+        self._last_state: tuple[int, float, float] | None = None   # seq, x, y
         self.v = 0.0
         self.last_compute_ns = 0
 
@@ -78,6 +80,12 @@ class SafetyService(Service):
             self._record_error(f"stale scan {scan.seq}: {(arrival_ns - scan.stamp_ns) / 1e6:.1f} ms old")
             return self.logic.braking
         state, state_arrival = self.state.latest()
+        if state is not None and (self._last_state is None or state.seq != self._last_state[0]):
+            if self._last_state is not None and math.hypot(state.x - self._last_state[1], state.y - self._last_state[2]) \
+                    > self.scfg.reset_jump_m:
+                self.logic.reset()  # moved (a new episode): no brake carried over
+                self.counts["resets"] += 1
+            self._last_state = (state.seq, state.x, state.y)
         _, _, _, v, steer = self.ego.estimate(scan.stamp_ns, state, state_arrival)
         self.v = v
         geom = self.logic.geometry(scan.angle_min, scan.angle_increment, scan.ranges.shape[0])

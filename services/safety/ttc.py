@@ -100,6 +100,11 @@ class BrakeLogic:
         self.brake_scans = 0
         self.last_ttc = float("inf")
 
+    def reset(self) -> None:
+        """Forget the scans seen so far (not the counters): the car was moved (a new episode)."""
+        self.braking = False
+        self.below = self.clear = 0
+
     def geometry(self, angle_min: float, angle_increment: float, n: int) -> RayGeometry:
         key = (round(angle_min, 7), round(angle_increment, 9), n)
         g = self._geom.get(key)

@@ -257,11 +257,13 @@ class SimService(Service):
         w, stamp = self.world, self._stamp()
         self.scan_seq = self.seq
         self.scan_t = w.t
-        self.pub_scan.put(make_scan(w.scan_ranges, stamp, self.seq, "sim", w.spec))
         x, y, yaw, vx, vy, r = w.agent_state()
+        # the state first: whoever judges the scan (baseline, safety supervisor) already has the
+        # state of the same instant (samples of one session through one router keep their order)
         self.pub_state.put(VehicleState(stamp_ns=stamp, seq=self.seq, source="sim", x=x, y=y, yaw=yaw,
                                         vx=vx, vy=vy, yaw_rate=r, steering_angle=float(w.steer[0]),
                                         collided=w.collided))
+        self.pub_scan.put(make_scan(w.scan_ranges, stamp, self.seq, "sim", w.spec))
         if self.scfg.publish_obstacles:
             obs = [Obstacle(id=i + 1, x=o[0], y=o[1], yaw=o[2], speed=o[3], length=self.car_params.length,
                             width=self.car_params.width) for i, o in enumerate(w.obstacles())]
