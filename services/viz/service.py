@@ -12,8 +12,8 @@ Open Foxglove, "Open connection" -> ``ws://HOST:8765`` (Foxglove WebSocket). Cha
 | /latency     | JSON                      | scan + cmd arrivals   | scan -> command ms on this host's clock, controller compute ms |
 
 ``--mcap PATH`` also writes every channel to an MCAP file (Foxglove opens it). Logging happens in
-the subscriber callbacks (about 10-20 us a message); a viewer that is not connected costs nothing
-but that.
+the subscriber callbacks: building and logging a 170-ray LaserScan took 6 us (median, no viewer
+connected, on the reference machine), a transform 2 us.
 """
 
 from __future__ import annotations
