@@ -35,6 +35,17 @@ def summarize(samples, scale: float = 1.0) -> dict:
             "mean": float(a.mean()), "min": float(a.min()), "max": float(a.max())}
 
 
+def git_commit() -> str:
+    """The checkout's commit (``git describe --always --dirty``): provenance of every result."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=12"], capture_output=True,
+                              text=True, timeout=5, cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
 def machine() -> str:
     return f"{platform.node() or 'host'}: {os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}"
 

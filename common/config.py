@@ -283,6 +283,8 @@ class SafetyConfig(Section):
 class EnvConfig(Section):
     """The training env ``racecav/Overtake-v0`` and its batched VecEnv (training/env.py)."""
 
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, use_attribute_docstrings=True)
+
     backend: Literal["fast", "bullet"] = "fast"
     """fast: the numba batched world (training); bullet: the PyBullet reference world."""
     world: str = "racetrack"
@@ -315,6 +317,61 @@ class EnvConfig(Section):
     More than one shows motion; the policy service stacks the same way (policy metadata)."""
     contact_penalty: float = Field(0.0, le=0)
     """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
+
+
+class TrainConfig(Section):
+    """One PPO training run (``racecav train racing|overtake``): the defaults are the paper's
+    setting (section 3.3; SB3 defaults for the rest); ``--preset fast`` and explicit flags
+    override them; the run folder's config.json records the result (training/train.py)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, use_attribute_docstrings=True)
+
+    stage: Literal["racing", "overtake"] = "overtake"
+    """racing: stage 1 on the empty track; overtake: stage 2 among obstacle cars (and scenarios)."""
+    preset: Literal["paper", "fast"] = "paper"
+    """The preset the run started from (TRAIN_PRESETS)."""
+    seed: int = Field(0, ge=0)
+    """PPO and env seed."""
+    n_steps: int = Field(2048, ge=1)
+    """Rollout steps per env (PPO n_steps)."""
+    batch_size: int = Field(64, ge=1)
+    """PPO minibatch size."""
+    n_epochs: int = Field(10, ge=1)
+    """PPO epochs per update."""
+    gamma: float = Field(0.99, gt=0, le=1)
+    """Discount factor."""
+    learning_rate: float = Field(3e-4, gt=0)
+    """Adam learning rate."""
+    gae_lambda: float = Field(0.95, ge=0, le=1)
+    """GAE lambda."""
+    clip_range: float = Field(0.2, gt=0)
+    """PPO clip range."""
+    ent_coef: float = Field(0.0, ge=0)
+    """Entropy bonus coefficient."""
+    vf_coef: float = Field(0.5, ge=0)
+    """Value loss coefficient."""
+    max_grad_norm: float = Field(0.5, gt=0)
+    """Gradient clipping norm."""
+    normalize: bool = False
+    """VecNormalize observations and rewards (the statistics ship with the weights)."""
+    checkpoint_every: int = Field(5_000_000, ge=1)
+    """Samples between checkpoints."""
+    init_from: str | None = None
+    """Start the weights (and the normalisation of a .vecnorm.pkl beside it) from this SB3 zip."""
+    init_std: float | None = Field(None, gt=0)
+    """With init_from: reset the action std to this (a converged policy explores too little)."""
+    env: EnvConfig = EnvConfig(n_envs=1)
+    """The training env (heading, obstacles, traffic driver, world, scenarios, observation...)."""
+
+
+TRAIN_PRESETS: dict[str, dict] = {
+    # The paper's PPO setting (section 3.3): the TrainConfig defaults, one env.
+    "paper": {"env": {"n_envs": 1}},
+    # Chosen by measurement for 2 shared CPU cores (docs/training.md): 64 envs per rollout, the
+    # same rollout length per env-step of experience, minibatch 2048, 10 epochs.
+    "fast": {"n_steps": 128, "batch_size": 2048, "normalize": True, "checkpoint_every": 1_000_000,
+             "env": {"n_envs": 64}},
+}
 
 
 class PolicyConfig(Section):

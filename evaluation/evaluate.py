@@ -28,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+from racecav.common.bench import git_commit
 from racecav.common.config import Config
 
 OUT_DIR = Path("runs/eval")
@@ -88,14 +89,6 @@ class Interrupted(Exception):
 
 def _raise_interrupted(signum, _frame):
     raise Interrupted(signal.Signals(signum).name)
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=12"], capture_output=True,
-                              text=True, timeout=5, cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def scenario_ref(name_or_path: str) -> tuple[str, Path]:

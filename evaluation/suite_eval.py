@@ -68,7 +68,7 @@ def family_summaries(cells: list[Cell], results: dict) -> tuple[object, dict]:
 def suite_json(name: str, split: str, controller: str, k: int, seed: int, cells: list[Cell], results: dict,
                wall_s: float, error) -> dict:
     """The results document of one controller over a suite split."""
-    from racecav.evaluation.evaluate import git_commit
+    from racecav.common.bench import git_commit
 
     overall, fams = family_summaries(cells, results)
     return {"suite": name, "split": split, "controller": controller, "trials_per_scenario": k, "base_seed": seed,

@@ -163,7 +163,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     from racecav.common.scenario import load_scenario
     from racecav.common.vehicle import load_car
     from racecav.common.world import load_world
-    from racecav.evaluation.evaluate import git_commit
+    from racecav.common.bench import git_commit
     from racecav.evaluation.harness import CONTROLLERS
     from racecav.evaluation.plots import plot_success_bars, plot_trajectories
 

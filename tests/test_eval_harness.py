@@ -188,14 +188,22 @@ def test_eval_realtime_mode(tmp_path):
 
 def test_table_writes_the_document(tmp_path):
     doc = tmp_path / "results.md"
-    r = _eval(tmp_path, "--table", "--controllers", "scripted", "--trials", "1", "--doc", str(doc), timeout=180)
+    suite = tmp_path / "suite"  # one test file per family
+    g = subprocess.run(procs.racecav_cmd("suite", "generate", "--n", "7", "--n-train", "1", "--out", str(suite),
+                                         "--no-progress"), capture_output=True, text=True, timeout=120)
+    assert g.returncode == 0, g.stdout + g.stderr
+    r = _eval(tmp_path, "--table", "--controllers", "scripted", "--trials", "1", "--trials-per-scenario", "1",
+              "--suite", str(suite), "--doc", str(doc), timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     text = doc.read_text()
-    assert "racecav eval --table --trials 1 --controllers scripted" in text
+    assert "racecav eval --table --trials 1 --suite" in text and "--trials-per-scenario 1" in text
     assert "| no evasion (straight 1 m/s, scripted) | **0** [0, 79] | - |" in text  # 0/1 collides, Wilson CI
     for sc in ("right-to-left", "head-to-head", "left-to-right"):
         assert validate_run(tmp_path / "table" / f"scripted-{sc}.json").complete
-    for png in ("results-table1.png", "results-fig4.png"):
+        assert validate_run(tmp_path / "table" / f"scripted-conflict-{sc}.json").complete
+    assert "## Conflict-timed paper scenarios" in text and "## Conflict suite" in text
+    assert "| no evasion (straight 1 m/s, scripted) | **0** [0, 79] | **0** [0, 79] | **0** [0, 79] |" in text
+    for png in ("results-table1.png", "results-fig4.png", "results-conflict.png", "results-suite.png"):
         assert (tmp_path / "img" / png).stat().st_size > 10_000
     # a controller that cannot run is named, nothing is started
     r = _eval(tmp_path, "--table", "--controllers", "scripted,nonsense", "--trials", "1", "--doc", str(doc))

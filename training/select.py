@@ -28,6 +28,8 @@ import shutil
 import time
 from pathlib import Path
 
+from racecav.training.runs import load_run_config
+
 log = logging.getLogger("racecav.train")
 
 SCENARIOS = ("right-to-left", "head-to-head", "left-to-right")
@@ -88,16 +90,13 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1):
     return NumpyPolicy(arrays, {"obs_stack": obs_stack})
 
 
-def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) -> dict:
+def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
     """One episode in each of ``episodes`` fast worlds of the run's env (held-out seed)."""
     import numpy as np
 
     from racecav.training.vec_env import FastVecEnv
 
-    env = FastVecEnv(n_envs=episodes, heading=settings["heading"], n_obstacles=settings["n_obstacles"],
-                     driver=settings["driver"], time_limit=settings.get("time_limit"),
-                     world=settings.get("world", "racetrack"), obs_stack=settings.get("obs_stack", 1),
-                     seed=seed)
+    env = FastVecEnv(n_envs=episodes, config=env_cfg, scenario_share=0.0, seed=seed)
     obs = env.reset()
     ret = np.zeros(episodes)
     done = np.zeros(episodes, bool)
@@ -106,7 +105,7 @@ def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) ->
     prog = np.zeros(episodes)
     fw = env.world
     lap = len(fw.cl) * fw.cl_ds
-    sign = -1.0 if settings["heading"] == "reversed" else 1.0
+    sign = -1.0 if env_cfg.heading == "reversed" else 1.0
 
     def where():
         # the fast world's own centerline tracking (a local search): a global nearest point
@@ -130,15 +129,14 @@ def eval_env(policy, settings: dict, episodes: int, seed: int = HELDOUT_SEED) ->
             "env_ep_len": float(length.mean()), "env_progress": float(prog.mean())}
 
 
-def eval_suite_fast(policy, settings: dict, episodes: int, seed: int = SELECT_SEED) -> dict:
+def eval_suite_fast(policy, env_cfg, episodes: int, seed: int = SELECT_SEED) -> dict:
     """Success of one episode in each of ``episodes`` fast worlds running the run's scenario
     files (its suite's train split) with selection seeds: overall and per family."""
     import numpy as np
 
     from racecav.training.vec_env import FastVecEnv
 
-    env = FastVecEnv(n_envs=episodes, scenarios=settings["scenarios"], scenario_share=1.0,
-                     obs_stack=settings.get("obs_stack", 1), seed=seed)
+    env = FastVecEnv(n_envs=episodes, config=env_cfg, scenario_share=1.0, seed=seed)
     obs = env.reset()
     names = np.concatenate([[w.scenarios[k].name for k in w.scenario_index] for w in env.worlds])
     done = np.zeros(env.num_envs, bool)
@@ -209,7 +207,7 @@ def select(args, cfg) -> int:
 
     torch.set_num_threads(1)
     run_dir = args.run_dir
-    settings = json.loads((run_dir / "config.json").read_text())
+    tc, _record = load_run_config(run_dir)
     cks = _checkpoints(run_dir)
     if not cks:
         log.error("no checkpoints in %s", run_dir / "checkpoints")
@@ -223,7 +221,7 @@ def select(args, cfg) -> int:
         with out.open() as f:
             done = {int(r["timesteps"]): r for r in csv.DictReader(f)}
     fields = ["timesteps", "checkpoint", "env_return", "env_contact_rate", "env_ep_len", "env_progress"]
-    conflict = bool(settings.get("scenarios"))
+    conflict = bool(tc.env.scenarios)
     if not args.no_intersection:
         fields += [f"{s}_{m}" for s in SCENARIOS for m in ("success", "contact", "progress")]
         fields += ["intersection_success", "trials"]
@@ -237,8 +235,8 @@ def select(args, cfg) -> int:
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
             rows.append(prev)
             continue
-        pol = policy_from_checkpoint(ck, settings.get("obs_stack", 1))
-        row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, settings, args.episodes)}
+        pol = policy_from_checkpoint(ck, tc.env.obs_stack)
+        row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, tc.env, args.episodes)}
         if not args.no_intersection:
             rates = []
             for sc in SCENARIOS:
@@ -252,7 +250,7 @@ def select(args, cfg) -> int:
                 crates = [eval_scenario(pol, sc, args.trials, SELECT_SEED)["success"] for sc in CONFLICT_SCENARIOS]
                 row.update({f"{sc}_success": r for sc, r in zip(CONFLICT_SCENARIOS, crates)})
                 row["conflict_success"] = sum(crates) / len(crates)
-                suite = eval_suite_fast(pol, settings, args.suite_episodes)
+                suite = eval_suite_fast(pol, tc.env, args.suite_episodes)
                 row.update(suite)
                 fields += [k for k in suite if k not in fields]
                 row["score"] = (row["suite_success"] + row["conflict_success"] + row["intersection_success"]) / 3
@@ -329,10 +327,10 @@ def ship(args, cfg) -> int:
     from stable_baselines3 import PPO
 
     from racecav.services.policy.model import MODELS_DIR, export_policy
-    from racecav.training.train import git_commit
+    from racecav.common.bench import git_commit
 
     run_dir = args.run_dir
-    settings = json.loads((run_dir / "config.json").read_text())
+    tc, record = load_run_config(run_dir)
     evals = {}
     if (run_dir / "eval.csv").is_file():
         with (run_dir / "eval.csv").open() as f:
@@ -358,13 +356,13 @@ def ship(args, cfg) -> int:
     n = _step(ck)
     latest = json.loads((run_dir / "latest.json").read_text()) if (run_dir / "latest.json").is_file() else {}
     meta = {"name": args.name, "training_steps": n, "run": run_dir.name, "checkpoint": ck.name,
-            "seed": settings["seed"], "settings": settings, "git_commit_training": settings.get("git_commit"),
+            "seed": tc.seed, "settings": tc.model_dump(mode="json"), "git_commit_training": record.get("git_commit"),
             "git_commit_export": git_commit(),
             "run_total_steps": latest.get("timesteps"), "run_wall_s": latest.get("wall_s"),
-            "selection": evals.get(n), "obs_stack": settings.get("obs_stack", 1),
+            "selection": evals.get(n), "obs_stack": tc.env.obs_stack,
             "observation": ("sanitised lidar ranges (common/lidar.sanitize), 170, m"
-                            + (f"; the newest {settings['obs_stack']} scans, newest first"
-                               if settings.get("obs_stack", 1) > 1 else "")),
+                            + (f"; the newest {tc.env.obs_stack} scans, newest first"
+                               if tc.env.obs_stack > 1 else "")),
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"}
     dst = MODELS_DIR / f"{args.name}.npz"
     export_policy(model, dst, meta, obs_rms=norm.obs_rms if norm else None,
@@ -468,8 +466,8 @@ def _runs() -> dict[str, dict]:
             continue
         with (d / "progress.csv").open() as f:
             rows = list(csv.DictReader(f))
-        cfgd = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
-        out[d.name] = {"rows": rows, "config": cfgd, "dir": d}
+        tc = load_run_config(d)[0] if (d / "config.json").is_file() else None
+        out[d.name] = {"rows": rows, "config": tc, "dir": d}
     return out
 
 
@@ -535,9 +533,11 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
           "|---|---|---|---|---|---|---|---|---|"]
     for name, s in curves.items():
         c = s["config"]
-        L.append(f"| {name} | {c.get('preset')} | {s['samples'] / 1e6:.1f} M | {s['wall_s'] / 60:.0f} min | "
-                 f"{s['samples_per_s_median']:.0f} | {c.get('n_envs')} x {c.get('n_steps')} | {c.get('batch_size')} | "
-                 f"{c.get('n_epochs')} | {c.get('normalize')} |")
+        if c is None:
+            continue
+        L.append(f"| {name} | {c.preset} | {s['samples'] / 1e6:.1f} M | {s['wall_s'] / 60:.0f} min | "
+                 f"{s['samples_per_s_median']:.0f} | {c.env.n_envs} x {c.n_steps} | {c.batch_size} | "
+                 f"{c.n_epochs} | {c.normalize} |")
     L += ["", "![learning curves](img/training_curves.png)", ""]
     for name in curves:
         if (COMMITTED / name / "eval.png").is_file():

@@ -28,75 +28,67 @@ import argparse
 import csv
 import json
 import logging
-import pickle
 import os
+import pickle
 import signal
-import subprocess
 import time
 from pathlib import Path
 
+from racecav.common.bench import git_commit
+from racecav.training.runs import load_run_config
+
 log = logging.getLogger("racecav.train")
 
-PRESETS: dict[str, dict] = {
-    # The paper's PPO setting (section 3.3); SB3 defaults for the rest.
-    "paper": dict(n_envs=1, n_steps=2048, batch_size=64, n_epochs=10, gamma=0.99,
-                  learning_rate=3e-4, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0,
-                  vf_coef=0.5, max_grad_norm=0.5, normalize=False, checkpoint_every=5_000_000),
-    # Chosen by measurement for 2 shared CPU cores (docs/training.md): same rollout length per
-    # env-step of experience, 64 envs per rollout, minibatch 2048, 10 epochs.
-    "fast": dict(n_envs=64, n_steps=128, batch_size=2048, n_epochs=10, gamma=0.99,
-                 learning_rate=3e-4, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0,
-                 vf_coef=0.5, max_grad_norm=0.5, normalize=True, checkpoint_every=1_000_000),
-}
-SETTINGS = list(PRESETS["paper"])
+TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
+               "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
+               "init_from", "init_std")
+"""TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
+ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
+             "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
+             "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty"}
+"""EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",
               "explained_variance", "std", "learning_rate"]
 RUNS_DIR = Path("runs")
 
 
+def _flag_type(annotation):
+    """argparse type of a config field: ints accept 1e6, optional fields their inner type."""
+    inner = [a for a in getattr(annotation, "__args__", (annotation,)) if a is not type(None)]
+    t = inner[0] if inner else str
+    if t is int:
+        return lambda v: int(float(v))
+    return t if t in (float, str) else str
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from racecav.common.config import TRAIN_PRESETS, EnvConfig, TrainConfig
+
     sub = parser.add_subparsers(dest="train_cmd", required=True, metavar="STAGE")
     for stage, help_ in (("racing", "stage 1: the racing policy on the empty track (0 obstacles)"),
                          ("overtake", "stage 2: overtaking with 15 obstacle cars driven by the racing policy")):
         p = sub.add_parser(stage, help=help_, description=help_)
-        p.add_argument("--heading", choices=["default", "reversed"], default="default")
         p.add_argument("--steps", type=float, default=1e6, help="total samples of the run (default 1e6)")
         p.add_argument("--run-dir", type=Path, help="run folder (default runs/<stage>[-<heading>])")
         p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from latest")
-        p.add_argument("--preset", choices=list(PRESETS), default="paper")
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument("--n-envs", type=int)
-        p.add_argument("--n-steps", type=int, help="rollout steps per env (PPO n_steps)")
-        p.add_argument("--batch-size", type=int)
-        p.add_argument("--n-epochs", type=int)
-        p.add_argument("--gamma", type=float)
-        p.add_argument("--learning-rate", "--lr", dest="learning_rate", type=float)
-        p.add_argument("--gae-lambda", type=float)
-        p.add_argument("--clip-range", type=float)
-        p.add_argument("--ent-coef", type=float)
-        p.add_argument("--vf-coef", type=float)
-        p.add_argument("--max-grad-norm", type=float)
-        p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=None,
-                       help="VecNormalize observations and rewards (shipped with the weights)")
-        p.add_argument("--checkpoint-every", type=float, help="samples between checkpoints")
-        p.add_argument("--n-obstacles", type=int, help="default: 0 racing, 15 overtake")
-        p.add_argument("--driver", help="traffic driver: centerline | policy:PATH|NAME "
-                                        "(overtake default: policy:racing)")
-        p.add_argument("--time-limit", type=float, help="episode time limit (s)")
-        p.add_argument("--world", help="training world (common/data/worlds; default racetrack)")
-        p.add_argument("--scenarios", help="scenario episodes: a conflict suite (NAME or DIR; its train "
-                       "split), a folder of scenario files, or one file")
-        p.add_argument("--scenario-share", type=float, help="share of the batch running scenario "
-                       "episodes (default 0.5 with --scenarios)")
-        p.add_argument("--obs-stack", type=int, help="scans per observation, newest first (default 1: the "
-                       "paper's; > 1 shows motion; --init-from a 1-scan policy starts with zero weights on the "
-                       "older scans, i.e. the same behaviour)")
-        p.add_argument("--contact-penalty", type=float, help="reward at a contact (<= 0; default 0: "
-                       "the paper's reward)")
-        p.add_argument("--init-from", type=Path, help="start the weights (and, if a .vecnorm.pkl "
-                                                       "lies beside it, the normalisation) from this SB3 zip")
+        p.add_argument("--preset", choices=list(TRAIN_PRESETS), default="paper",
+                       help="paper (the paper's PPO setting, one env) | fast (64 batched envs; docs/training.md)")
         p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+        # every setting is a field of TrainConfig / EnvConfig (common/config.py): flags, help and
+        # the run record come from there
+        for name in TRAIN_FLAGS:
+            f = TrainConfig.model_fields[name]
+            flag = "--" + name.replace("_", "-")
+            if f.annotation is bool:
+                p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=f.description)
+            elif name == "learning_rate":
+                p.add_argument(flag, "--lr", dest=name, type=float, help=f.description)
+            else:
+                p.add_argument(flag, dest=name, type=_flag_type(f.annotation), help=f.description)
+        for name, flag in ENV_FLAGS.items():
+            f = EnvConfig.model_fields[name]
+            p.add_argument(flag, dest=f"env_{name}", type=_flag_type(f.annotation), help=f.description)
         p.set_defaults(stage=stage)
     from racecav.training import select  # cheap module: argument definitions only
 
@@ -140,59 +132,53 @@ def export_onnx(args) -> int:
 
 
 # ----------------------------------------------------------------------------------- settings
-def run_settings(args) -> dict:
-    """All settings of a run: the preset, overridden by explicit flags."""
-    s = dict(PRESETS[args.preset])
-    for k in SETTINGS:
-        v = getattr(args, k, None)
-        if v is not None:
-            s[k] = v
-    s["checkpoint_every"] = int(s["checkpoint_every"])
+def config_from_args(args, env_base=None):
+    """The run's TrainConfig: defaults, the preset, the stage's env defaults, explicit flags.
+
+    :param env_base: the EnvConfig of the configuration file (``--config``) to start from.
+    :raises ValueError: naming the invalid setting.
+    """
+    from pydantic import ValidationError
+
+    from racecav.common.config import TRAIN_PRESETS, TrainConfig
+    from racecav.common.vehicle import format_errors
+
     overtake = args.stage == "overtake"
-    s.update(stage=args.stage, preset=args.preset, seed=args.seed,
-             heading=args.heading if overtake else "default",
-             n_obstacles=args.n_obstacles if args.n_obstacles is not None else (15 if overtake else 0),
-             driver=args.driver or ("policy:racing" if overtake else "centerline"),
-             time_limit=args.time_limit, world=args.world or "racetrack",
-             init_from=str(args.init_from) if args.init_from else None,
-             scenarios=args.scenarios,
-             scenario_share=(args.scenario_share if args.scenario_share is not None
-                             else (0.5 if args.scenarios else 0.0)),
-             contact_penalty=args.contact_penalty or 0.0,
-             obs_stack=args.obs_stack or 1)
-    return s
-
-
-def git_commit() -> str:
+    preset = TRAIN_PRESETS[args.preset]
+    env = {**(env_base.model_dump() if env_base is not None else {}), **preset.get("env", {}),
+           "heading": "default", "n_obstacles": 15 if overtake else 0,
+           "driver": "policy:racing" if overtake else "centerline"}
+    flags = {k: getattr(args, f"env_{k}", None) for k in ENV_FLAGS}
+    env.update({k: v for k, v in flags.items() if v is not None})
+    if not overtake and flags.get("heading") not in (None, "default"):
+        raise ValueError("heading: the racing stage drives with no traffic (default heading only)")
+    if env.get("scenarios") and flags.get("scenario_share") is None:
+        env["scenario_share"] = 0.5
+    data = {**{k: v for k, v in preset.items() if k != "env"}, "stage": args.stage, "preset": args.preset,
+            **{k: getattr(args, k) for k in TRAIN_FLAGS if getattr(args, k, None) is not None}, "env": env}
+    if data.get("init_from") is not None:
+        data["init_from"] = str(data["init_from"])
     try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent, timeout=5).stdout.strip()
-    except Exception:  # noqa: BLE001 - metadata only
-        return ""
+        return TrainConfig.model_validate(data)
+    except ValidationError as e:
+        raise ValueError(format_errors(e)) from None
 
 
-def make_venv(s: dict, seed: int, cfg=None):
-    """The (VecMonitor-wrapped) FastVecEnv of a run's settings."""
+def make_venv(tc, seed: int):
+    """The (VecMonitor-wrapped) FastVecEnv of a run's TrainConfig."""
     from stable_baselines3.common.vec_env import VecMonitor
 
     from racecav.training.vec_env import FastVecEnv
 
-    venv = FastVecEnv(n_envs=s["n_envs"], config=cfg.env if cfg is not None else None,
-                      heading=s["heading"], n_obstacles=s["n_obstacles"], driver=s["driver"],
-                      time_limit=s["time_limit"], world=s.get("world", "racetrack"),
-                      scenarios=s.get("scenarios"), scenario_share=s.get("scenario_share", 0.0),
-                      contact_penalty=s.get("contact_penalty", 0.0), obs_stack=s.get("obs_stack", 1),
-                      seed=seed)
-    return VecMonitor(venv)
+    return VecMonitor(FastVecEnv(config=tc.env, seed=seed))
 
 
-def _ppo_kwargs(s: dict) -> dict:
+def _ppo_kwargs(tc) -> dict:
     import torch
 
-    return dict(n_steps=s["n_steps"], batch_size=s["batch_size"], n_epochs=s["n_epochs"],
-                gamma=s["gamma"], learning_rate=s["learning_rate"], gae_lambda=s["gae_lambda"],
-                clip_range=s["clip_range"], ent_coef=s["ent_coef"], vf_coef=s["vf_coef"],
-                max_grad_norm=s["max_grad_norm"],
+    return dict(n_steps=tc.n_steps, batch_size=tc.batch_size, n_epochs=tc.n_epochs, gamma=tc.gamma,
+                learning_rate=tc.learning_rate, gae_lambda=tc.gae_lambda, clip_range=tc.clip_range,
+                ent_coef=tc.ent_coef, vf_coef=tc.vf_coef, max_grad_norm=tc.max_grad_norm,
                 policy_kwargs=dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh))
 
 
@@ -205,56 +191,59 @@ def train(args, cfg) -> int:
 
     torch.set_num_threads(1)
     limit_blas_threads(1)
-    run_dir = args.run_dir or RUNS_DIR / (args.stage if args.stage == "racing" else f"overtake-{args.heading}")
-    run_dir = Path(run_dir)
-    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    heading = args.env_heading or "default"
+    run_dir = Path(args.run_dir or RUNS_DIR / (args.stage if args.stage == "racing" else f"overtake-{heading}"))
     cfg_path = run_dir / "config.json"
     total = int(args.steps)
     if args.resume:
         if not (run_dir / "latest.zip").is_file():
             log.error("--resume: no %s", run_dir / "latest.zip")
             return 2
-        s = json.loads(cfg_path.read_text())
+        tc, record = load_run_config(run_dir)
         state = json.loads((run_dir / "latest.json").read_text())
     else:
         if (run_dir / "latest.zip").exists():
             log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
             return 2
-        s = run_settings(args)
-        s["git_commit"] = git_commit()
-        s["started"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-        cfg_path.write_text(json.dumps(s, indent=2) + "\n")
+        try:
+            tc = config_from_args(args, cfg.env if cfg is not None else None)
+        except ValueError as e:
+            print(f"racecav train: {e}")
+            return 2
+        record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        cfg_path.write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
         state = {"timesteps": 0, "wall_s": 0.0}
-    s["total_steps"] = total
 
     # Env seed: the run's seed, shifted on resume so a resumed run does not replay its episodes.
-    venv = make_venv(s, seed=s["seed"] + state["timesteps"], cfg=cfg)
-    if s["normalize"]:
+    venv = make_venv(tc, seed=tc.seed + state["timesteps"])
+    if tc.normalize:
         if args.resume:
             venv = VecNormalize.load(str(run_dir / "latest.vecnorm.pkl"), venv)
             venv.training = True
         else:
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=s["gamma"])
-            init_norm = Path(s["init_from"]).with_suffix(".vecnorm.pkl") if s.get("init_from") else None
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma)
+            init_norm = Path(tc.init_from).with_suffix(".vecnorm.pkl") if tc.init_from else None
             if init_norm is not None and init_norm.is_file():
-                # the weights expect the statistics they were trained with: start from those
+                # the weights expect the statistics they were trained with: start from those,
+                # a 1-scan policy's for every scan of a stack
                 with init_norm.open("rb") as f:
                     old = pickle.load(f)
+                reps = venv.observation_space.shape[0] // len(old.obs_rms.mean)
                 venv.ret_rms = old.ret_rms
-                k = s.get("obs_stack", 1)  # a 1-scan policy's statistics for every scan of the stack
-                venv.obs_rms.mean = np.tile(old.obs_rms.mean, k // max(1, len(old.obs_rms.mean) // 170))
-                venv.obs_rms.var = np.tile(old.obs_rms.var, k // max(1, len(old.obs_rms.var) // 170))
+                venv.obs_rms.mean = np.tile(old.obs_rms.mean, reps)
+                venv.obs_rms.var = np.tile(old.obs_rms.var, reps)
                 venv.obs_rms.count = old.obs_rms.count
     if args.resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         _truncate_csv(run_dir / "progress.csv", model.num_timesteps)
         log.info("resumed %s at %d samples", run_dir, model.num_timesteps)
     else:
-        model = PPO("MlpPolicy", venv, seed=s["seed"], device="cpu", verbose=0, **_ppo_kwargs(s))
-        if s.get("init_from"):
-            init_weights(model, Path(s["init_from"]))
+        model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        if tc.init_from:
+            init_weights(model, Path(tc.init_from), tc.init_std)
     _configure_logger(model, run_dir)
-    cb = _make_callback_class()(run_dir, total, s["checkpoint_every"], state["wall_s"], progress=not args.no_progress)
+    cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     remaining = total - model.num_timesteps
     if remaining <= 0:
         log.info("run already at %d >= %d samples", model.num_timesteps, total)
@@ -274,10 +263,11 @@ def train(args, cfg) -> int:
     return 0
 
 
-def init_weights(model, path: Path) -> None:
+def init_weights(model, path: Path, std: float | None = None) -> None:
     """Start ``model``'s policy from an SB3 zip. A first layer narrower than the model's (a
     1-scan policy into a stacked observation) is widened with zero weights on the extra inputs,
-    so the new model starts with the old behaviour."""
+    so the new model starts with the old behaviour. ``std``: reset the action std to this."""
+    import numpy as np
     import torch
     from stable_baselines3 import PPO
 
@@ -291,6 +281,8 @@ def init_weights(model, path: Path) -> None:
                 src[k] = w
             else:
                 raise ValueError(f"--init-from {path}: {k} has shape {tuple(v.shape)}, the model {tuple(dst[k].shape)}")
+    if std is not None:
+        src["log_std"] = torch.full_like(src["log_std"], float(np.log(std)))
     model.policy.load_state_dict(src, strict=True)
 
 
