@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from racecav.common.subcommands import add_table, run_table
+
 DOC = Path("docs/benchmarks.md")
 HEADER = """# Benchmarks
 
@@ -24,6 +26,21 @@ Every section below is written by the command it names, on the machine it names;
 typed by hand. Run-to-run noise on the 2-core reference machine is about +-20 %: compare ratios
 measured in one run. Regenerate a section with its command (from the repository root).
 """
+
+
+# `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
+BENCHES: dict[str, tuple[str, str]] = {
+    "lidar": ("racecav.services.sensor.bench", "RPLIDAR dense decoding and preprocessing cost, live driver CPU over a pty"),
+    "vesc": ("racecav.services.actuator.bench", "DriveCommand-to-VESC latency and watchdog reaction, timed at the emulator"),
+    "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
+    "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency (client and peer mode), status queries, codec"),
+    "train": ("racecav.training.bench_train", "PPO samples/s: the paper's setting vs more envs per rollout, larger minibatches, fewer epochs"),
+    "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
+    "faults": ("racecav.common.bench_faults", "reliability: kill -> brake, e-stop latch, lidar replug, router restart, fuzz; writes docs/reliability.md"),
+    "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
+    "record": ("racecav.services.record.bench", "policy scan->command latency with racecav record / racecav ros2 running beside it; their per-message cost"),
+    "safety": ("racecav.services.safety.bench", "safety supervisor: scan -> brake latency (real processes), false brakes over ~100 laps of the empty tracks (shadow mode)"),
+}
 
 
 def summarize(samples, scale: float = 1.0) -> dict:
@@ -80,12 +97,8 @@ def _common_options(q: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from racecav.cli import BENCHES, add_table
-
     add_table(p, "bench", BENCHES, extra=_common_options)
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    from racecav.cli import BENCHES, run_table
-
     return run_table(args, cfg, "bench", BENCHES)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from racecav.cli import add_table, run_table
+from racecav.common.subcommands import add_table, run_table
 
 ACTIONS = {
     "install": ("racecav.deploy.install", "venv, systemd units, udev rules, default config, credentials"),

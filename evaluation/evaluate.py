@@ -28,22 +28,17 @@ import sys
 import time
 from pathlib import Path
 
+from racecav.common import registry
 from racecav.common.bench import git_commit
 from racecav.common.config import Config
 
 OUT_DIR = Path("runs/eval")
 
 
-CONTROLLER_NAMES = ("drl-avoid", "drl-reversed", "drl-default", "drl-racing", "mpc-apf", "scripted", "full-throttle",
-                    "mpc-apf-fast")
-"""= harness.CONTROLLERS' keys (a test checks), spelled here so that building the CLI parser does
-not import the harness."""
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", help="scenario name (right-to-left, head-to-head, left-to-right, ...) "
                    "or a scenario TOML file (schema: docs/world.md)")
-    p.add_argument("--controller", choices=CONTROLLER_NAMES,
+    p.add_argument("--controller", choices=list(registry.CONTROLLERS),
                    help="drl-avoid | drl-reversed | drl-default | drl-racing (racecav policy --model ...), mpc-apf "
                    "(racecav baseline), mpc-apf-fast (the baseline at v_ref 2.7 m/s), scripted / full-throttle "
                    "(straight ahead at 1 m/s / full throttle, no evasion: references)")

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from racecav.common import keys, procs
+from racecav.common import keys, procs, registry
 from racecav.common.codec import DecodeError, decode
 from racecav.common.config import Config
 from racecav.common.messages import DriveCommand, ObstacleStates, Scan, VehicleState
@@ -48,12 +48,6 @@ class Controller:
     label: str = ""
 
 
-def _policy_model(name: str) -> Path:
-    from racecav.services.policy.model import MODELS_DIR
-
-    return MODELS_DIR / f"{name}.npz"
-
-
 def _hold_speed_throttle(speed: float) -> float:
     """Throttle whose steady speed is ``speed`` for the sim's agent car."""
     from racecav.common.vehicle import load_car, throttle_for_speed
@@ -62,43 +56,25 @@ def _hold_speed_throttle(speed: float) -> float:
     return float(throttle_for_speed(speed, car, car.agent_speed_scale))
 
 
-CONTROLLERS: dict[str, Controller] = {
-    "drl-reversed": Controller("drl-reversed", ("policy", "--model", "reversed"), "policy",
-                               "racecav.services.policy.service", _policy_model("reversed"),
-                               "DRL reversed heading"),
-    "drl-default": Controller("drl-default", ("policy", "--model", "default"), "policy",
-                              "racecav.services.policy.service", _policy_model("default"), "DRL default"),
-    "drl-avoid": Controller("drl-avoid", ("policy", "--model", "avoid"), "policy",
-                            "racecav.services.policy.service", _policy_model("avoid"),
-                            "DRL avoid (trained on conflicts)"),
-    "drl-racing": Controller("drl-racing", ("policy", "--model", "racing"), "policy",
-                             "racecav.services.policy.service", _policy_model("racing"),
-                             "DRL racing (stage 1, not in the paper's table)"),
-    "mpc-apf": Controller("mpc-apf", ("baseline",), "baseline", "racecav.services.baseline.service",
-                          None, "MPC-APF"),
-    # Reference without evasion: straight ahead at the throttle that holds 1 m/s (the scenarios'
-    # ego start speed). Shows that the scenarios are real conflicts, and lets the harness be
-    # tested before the controllers exist.
-    "scripted": Controller("scripted", ("scripted", "--program", f"{_hold_speed_throttle(1.0):.4f},0.0,100000000"),
-                           "scripted", "racecav.services.sim.scripted", None, "no evasion (straight 1 m/s, scripted)"),
-    # References for reading the table: the side scenarios are decided by who reaches the
-    # crossing first. Straight at full throttle (the agent's 2.7 m/s, about what the DRL
-    # policies drive at) clears it before the 1 m/s obstacle arrives; the baseline told to
-    # cruise at that speed shows the same (docs/results.md).
-    "full-throttle": Controller("full-throttle", ("scripted", "--program", "1.0,0.0,100000000"), "scripted",
-                                "racecav.services.sim.scripted", None, "no evasion (straight, full throttle, scripted)"),
-    "mpc-apf-fast": Controller("mpc-apf-fast", ("baseline", "--v-ref", "2.7"), "baseline",
-                               "racecav.services.baseline.service", None, "MPC-APF at v_ref 2.7 m/s (not in the paper)"),
-}
-TABLE_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed")
+def _controller(spec: registry.ControllerSpec) -> Controller:
+    """The registry's controller with its weights file and its scripted program resolved."""
+    from racecav.services.policy.model import resolve_policy_path
+
+    args = spec.args
+    if "HOLD" in args:  # straight ahead at the throttle that holds HOLD_SPEED
+        args = tuple(f"{_hold_speed_throttle(registry.HOLD_SPEED):.4f},0.0,100000000" if a == "HOLD" else a
+                     for a in args)
+    model = resolve_policy_path(spec.policy) if spec.policy else None
+    return Controller(spec.name, args, spec.service, spec.module, model, spec.label)
+
+
+CONTROLLERS: dict[str, Controller] = {n: _controller(c) for n, c in registry.CONTROLLERS.items()}
 
 
 def missing(ctrl: Controller) -> str | None:
     """Why ``ctrl`` cannot run here (a missing service module or weights file), or None."""
-    from racecav.cli import COMMANDS
-
-    if ctrl.args[0] not in COMMANDS or importlib.util.find_spec(ctrl.module) is None:
-        return f"the `racecav {ctrl.args[0]}` command ({ctrl.module}) is not installed yet"
+    if importlib.util.find_spec(ctrl.module) is None:
+        return f"the `racecav {ctrl.args[0]}` command ({ctrl.module}) is not installed"
     if ctrl.model is not None and not ctrl.model.exists():
         return f"the shipped weights {ctrl.model} do not exist yet"
     return None

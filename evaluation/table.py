@@ -16,20 +16,13 @@ import sys
 import time
 from pathlib import Path
 
+from racecav.common import registry
 from racecav.common.config import Config
 
-SCENARIOS = ("right-to-left", "head-to-head", "left-to-right")
-SHORT = {"right-to-left": "R to L", "head-to-head": "H to H", "left-to-right": "L to R"}
-PAPER_TABLE1 = {  # success rates, 10 hardware trials each, obstacle at 1 m/s (paper, Table 1)
-    "mpc-apf": (0.7, 0.1, 0.6),
-    "drl-default": (0.8, 0.3, 0.7),
-    "drl-reversed": (0.8, 0.6, 0.7),
-}
-PAPER_TABLE2 = {"mpc-apf": (960_000, 13.2), "drl-reversed": (30_466, 0.206), "drl-default": (30_466, 0.206)}
-DEFAULT_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed", "drl-avoid", "scripted", "full-throttle",
-                       "mpc-apf-fast")
-CONFLICT = tuple(f"conflict-{s}" for s in SCENARIOS)
-"""The paper's three scenarios timed by the ego (common/data/scenarios/conflict-*.toml)."""
+SCENARIOS = registry.PAPER_SCENARIOS
+CONFLICT = registry.CONFLICT_SCENARIOS
+SHORT = registry.SHORT
+PAPER_TABLE1 = registry.PAPER_TABLE1
 SECTIONS = ("table1", "conflict", "suite")
 IMG_DIR = Path("docs/img")
 
@@ -62,7 +55,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     from racecav.evaluation.evaluate import NoBar, run_trials, write_json
     from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
 
-    names = [c.strip() for c in (args.controllers or ",".join(DEFAULT_CONTROLLERS)).split(",") if c.strip()]
+    names = [c.strip() for c in (args.controllers or ",".join(registry.DEFAULT_TABLE)).split(",") if c.strip()]
     if not args.controllers:  # the default list: a policy not shipped yet is left out, not an error
         names = [n for n in names if n in CONTROLLERS and not missing(CONTROLLERS[n])]
     sections = [x.strip() for x in (args.sections or ",".join(SECTIONS)).split(",") if x.strip()]

@@ -11,6 +11,7 @@ import importlib
 import sys
 
 from racecav.common.config import ConfigError, load_config
+from racecav.common.subcommands import add_arguments_of
 
 # name -> (module, one-line help). Keep sorted by role: infrastructure, services, tools.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -37,21 +38,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "viz": ("racecav.services.viz.service", "live Foxglove view (WebSocket): scan, car and obstacle boxes, walls, commands, latency; --mcap PATH (extra: viz)"),
 }
 
-# `racecav bench NAME`: name -> (module, help); the module exposes add_arguments/run too.
-BENCHES: dict[str, tuple[str, str]] = {
-    "lidar": ("racecav.services.sensor.bench", "RPLIDAR dense decoding and preprocessing cost, live driver CPU over a pty"),
-    "vesc": ("racecav.services.actuator.bench", "DriveCommand-to-VESC latency and watchdog reaction, timed at the emulator"),
-    "env": ("racecav.training.bench_env", "env-steps/s of the fast training world (1 and 2 processes) vs PyBullet"),
-    "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency (client and peer mode), status queries, codec"),
-    "train": ("racecav.training.bench_train", "PPO samples/s: the paper's setting vs more envs per rollout, larger minibatches, fewer epochs"),
-    "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
-    "faults": ("racecav.common.bench_faults", "reliability: kill -> brake, e-stop latch, lidar replug, router restart, fuzz; writes docs/reliability.md"),
-    "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
-    "record": ("racecav.services.record.bench", "policy scan->command latency with racecav record / racecav ros2 running beside it; their per-message cost"),
-    "safety": ("racecav.services.safety.bench", "safety supervisor: scan -> brake latency (real processes), false brakes over ~100 laps of the empty tracks (shadow mode)"),
-}
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="racecav", description=__doc__.splitlines()[0])
     parser.add_argument("--config", help="TOML config file (default: $RACECAV_CONFIG or built-in defaults)")
@@ -62,29 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         # --config after the subcommand too (`racecav sim --config car.toml`), as users type it.
         p.add_argument("--config", default=argparse.SUPPRESS, help="TOML config file")
         p.set_defaults(_module=module)
-        _add_arguments(module, p)
+        add_arguments_of(module, p)
     return parser
-
-
-def add_table(p: argparse.ArgumentParser, dest: str, table: dict[str, tuple[str, str]], extra=None) -> None:
-    """Second-level subcommands (``racecav bench NAME``, ``racecav deploy ACTION``...) from a
-    name -> (module, help) table; ``extra(subparser)`` adds options common to all of them."""
-    sub = p.add_subparsers(dest=dest, required=True, metavar=dest.upper())
-    for name, (module, help_) in table.items():
-        sp = sub.add_parser(name, help=help_, description=help_)
-        if extra is not None:
-            extra(sp)
-        _add_arguments(module, sp)
-
-
-def run_table(args: argparse.Namespace, cfg, dest: str, table: dict[str, tuple[str, str]]) -> int:
-    """Run the module :func:`add_table` chose for ``args.<dest>``."""
-    return int(importlib.import_module(table[getattr(args, dest)][0]).run(args, cfg) or 0)
-
-
-def _add_arguments(module: str, p: argparse.ArgumentParser) -> None:
-    # Argument definitions are cheap modules' functions; heavy imports stay inside run().
-    importlib.import_module(module).add_arguments(p)
 
 
 def main(argv: list[str] | None = None) -> int:

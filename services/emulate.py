@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from racecav.cli import add_table, run_table
+from racecav.common.subcommands import add_table, run_table
 
 DEVICES = {
     "rplidar": ("racecav.services.sensor.emulator", "RPLIDAR S2 (info/health/conf, standard/express/dense scans, faults)"),

@@ -81,8 +81,15 @@ def test_footprint_gap():
     assert gap[3] == 0.0                  # overlapping
 
 
-def test_cli_controller_names_match_the_harness():
-    from racecav.evaluation.evaluate import CONTROLLER_NAMES
-    from racecav.evaluation.harness import CONTROLLERS
+def test_registry_controllers_are_commands_of_the_cli():
+    import importlib.util
 
-    assert set(CONTROLLER_NAMES) == set(CONTROLLERS)
+    from racecav.cli import COMMANDS
+    from racecav.common.registry import CONTROLLERS
+    from racecav.evaluation.harness import CONTROLLERS as RESOLVED
+
+    assert set(RESOLVED) == set(CONTROLLERS)
+    for c in CONTROLLERS.values():
+        assert c.args[0] in COMMANDS and COMMANDS[c.args[0]][0] == c.module
+        assert importlib.util.find_spec(c.module) is not None
+    assert "HOLD" not in " ".join(RESOLVED["scripted"].args)

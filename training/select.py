@@ -28,19 +28,20 @@ import shutil
 import time
 from pathlib import Path
 
+from racecav.common import registry
 from racecav.training.runs import load_run_config
 
 log = logging.getLogger("racecav.train")
 
-SCENARIOS = ("right-to-left", "head-to-head", "left-to-right")
-CONFLICT_SCENARIOS = tuple(f"conflict-{s}" for s in SCENARIOS)
+SCENARIOS = registry.PAPER_SCENARIOS
+CONFLICT_SCENARIOS = registry.CONFLICT_SCENARIOS
 SELECT_SEED = 100_000
 REPORT_SEED = 0
 SUCCESS_RESOLUTION = 0.05
 HELDOUT_SEED = 900_000
 REPO = Path(__file__).resolve().parent.parent
 COMMITTED = REPO / "training" / "checkpoints"
-PAPER_HW = {"reversed": (80, 60, 70), "default": (80, 30, 70), "mpc-apf": (70, 10, 60)}
+PAPER_HW = {k.removeprefix("drl-"): tuple(round(100 * v) for v in r) for k, r in registry.PAPER_TABLE1.items()}
 
 
 def add_subcommands(sub) -> None:
