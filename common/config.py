@@ -315,6 +315,11 @@ class EnvConfig(Section):
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
     More than one shows motion; the policy service stacks the same way (policy metadata)."""
+    progress_reward: float = Field(0.0, ge=0)
+    """Reward per metre of progress (along the centerline in the agent's direction, or along a
+    scenario ego's initial heading), added to 5 T^2. 0: the paper's reward. ~18.5 matches 5 T^2
+    at full speed (2.7 m/s x 0.1 s); without it, turning away from a conflict and circling
+    earns as much as driving on."""
     contact_penalty: float = Field(0.0, le=0)
     """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
 

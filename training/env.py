@@ -180,6 +180,9 @@ class BulletBackend:
     def agent_state(self) -> np.ndarray:
         return self.bw.agent_state()[None, :4]
 
+    def progress(self) -> np.ndarray:
+        return np.array([self.bw.progress()])
+
     def close(self) -> None:
         self.bw.close()
 
@@ -227,6 +230,9 @@ class BulletScenarios:
 
     def success(self) -> np.ndarray:
         return np.array([self.bw.success()])
+
+    def progress(self) -> np.ndarray:
+        return np.array([self.bw.progress()])
 
     def close(self) -> None:
         if self.bw is not None:
@@ -310,8 +316,10 @@ class OvertakeEnv(gym.Env):
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(1, 2)
+        p0 = self._progress()
         obs, (throttle, a_delta), collided, info = self.world.step(a)
-        r = float(reward(throttle, self._a_prev, a_delta)[0]) + self.settings.contact_penalty * bool(collided[0])
+        r = (float(reward(throttle, self._a_prev, a_delta)[0]) + self.settings.contact_penalty * bool(collided[0])
+             + self.settings.progress_reward * (self._progress() - p0))
         self._a_prev = float(a_delta[0])
         self._steps += 1
         terminated = bool(collided[0])
@@ -327,6 +335,9 @@ class OvertakeEnv(gym.Env):
         if scenario and (terminated or truncated):
             out["is_success"] = bool(self.world.success()[0])
         return self._observe(obs[0], fresh=False), r, terminated, truncated, out
+
+    def _progress(self) -> float:
+        return float(self.world.progress()[0]) if self.settings.progress_reward else 0.0
 
     def close(self):
         for w in self.worlds:

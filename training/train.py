@@ -45,7 +45,8 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
-             "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty"}
+             "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty",
+             "progress_reward": "--progress-reward"}
 """EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",

@@ -42,7 +42,7 @@ class FastVecEnv(VecEnv):
                  agent_speed_scale: float | None = None, parallel: bool | None = None,
                  scenarios: str | None = None, scenario_share: float | None = None,
                  contact_penalty: float | None = None, obs_stack: int | None = None,
-                 seed: int | None = None):
+                 progress_reward: float | None = None, seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -51,7 +51,7 @@ class FastVecEnv(VecEnv):
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
                                      n_envs=n_envs, parallel=parallel, scenarios=scenarios,
                                      scenario_share=scenario_share, contact_penalty=contact_penalty,
-                                     obs_stack=obs_stack)
+                                     obs_stack=obs_stack, progress_reward=progress_reward)
         # the batch: traffic worlds first, then one scenario world per scenario world geometry
         self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
         self.world = self.worlds[0]
@@ -98,9 +98,11 @@ class FastVecEnv(VecEnv):
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
 
     def step_wait(self) -> VecEnvStepReturn:
-        obs_parts, thr, a_d, col, trunc, succ = [], [], [], [], [], []
+        obs_parts, thr, a_d, col, trunc, succ, dprog = [], [], [], [], [], [], []
         for w, sl in zip(self.worlds, self.slices):
+            p0 = w.progress()
             o, (t, d), c, _info = w.step(self._actions[sl])
+            dprog.append(w.progress() - p0)
             obs_parts.append(o)
             thr.append(t)
             a_d.append(d)
@@ -113,6 +115,8 @@ class FastVecEnv(VecEnv):
         rewards = reward(np.concatenate(thr), self.a_prev, a_delta)
         if self.settings.contact_penalty:
             rewards = rewards + np.float32(self.settings.contact_penalty) * collided
+        if self.settings.progress_reward:
+            rewards = rewards + (self.settings.progress_reward * np.concatenate(dprog)).astype(np.float32)
         self.a_prev[:] = a_delta
         self._stack[:, 1:] = self._stack[:, :-1]
         self._stack[:, 0] = obs
