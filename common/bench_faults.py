@@ -84,6 +84,20 @@ def _session(endpoint: str):
     return open_session(load_config(environ={"RACECAV_BUS__CONNECT": f'["{endpoint}"]'}))
 
 
+def _status(session, name: str, attempts: int = 5):
+    """A service's status, retried: a service that just (re)started, or one still working
+    through a flood, answers late rather than never."""
+    from racecav.common.client import get_status
+
+    for attempt in range(attempts):
+        try:
+            return get_status(session, CAR, name, timeout=5)
+        except RuntimeError as e:
+            if attempt == attempts - 1:
+                raise RuntimeError(f"{name} does not answer its status: {e}") from None
+            time.sleep(0.5)
+
+
 def _kill(p: subprocess.Popen) -> None:
     os.killpg(p.pid, signal.SIGKILL)
     p.wait()
@@ -165,7 +179,6 @@ def measure_soak(seconds: float, period_s: float = 0.1) -> dict:
 def measure_estop(n: int) -> dict:
     """E-stop put -> brake latency (n times), then the latch across kill -9 + restart and an
     e-stop published while the actuator is down."""
-    from racecav.common.client import get_status
     from racecav.common.codec import encode
     from racecav.common.messages import DriveCommand
 
@@ -208,7 +221,7 @@ def measure_estop(n: int) -> dict:
             rig.actuator = rig.start_actuator()
             time.sleep(1.0)
             out["latched_after_restart"] = not rig.rpm_after(t_restart) and \
-                get_status(rig.session, CAR, "actuator").info["estop"] is True
+                _status(rig.session, "actuator").info["estop"] is True
             rig.session.put(estop, b" clear\n")
             time.sleep(0.3)
             out["near_clear_ignored"] = not rig.rpm_after(t_restart)
@@ -363,7 +376,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
     import zenoh
 
     from racecav.common import fuzz
-    from racecav.common.client import get_status, live_services
+    from racecav.common.client import live_services
     from racecav.services.actuator.emulator import VescEmulator
 
     rng = np.random.default_rng(seed)
@@ -401,7 +414,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
 
         send(warmup, False)
         time.sleep(1.0)
-        before = {n: get_status(session, CAR, n) for n in SUBSCRIBERS}
+        before = {n: _status(session, n) for n in SUBSCRIBERS}
         rss0 = {n: _rss_kb(s.pid) for n, s in before.items()}
         t0 = time.monotonic()
         send(per_key // 2, True)
@@ -409,16 +422,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
         send(per_key - per_key // 2, True)
         elapsed = time.monotonic() - t0
         time.sleep(1.0)
-        after = {}
-        for n in SUBSCRIBERS:  # a service still working through the flood answers late, not never
-            for attempt in range(5):
-                try:
-                    after[n] = get_status(session, CAR, n, timeout=5)
-                    break
-                except RuntimeError as e:
-                    after[n] = e
-            if isinstance(after[n], Exception):
-                raise RuntimeError(f"{n} does not answer its status after the fuzz: {after[n]}")
+        after = {n: _status(session, n) for n in SUBSCRIBERS}
         alive = live_services(session, CAR)
         rows = {}
         for name, st in after.items():
