@@ -139,7 +139,7 @@ class Rig:
 def measure_kill_to_brake(kills: int, follow_liveliness: bool = True) -> list[float]:
     """Seconds from SIGKILL of a driving 10 Hz controller to the brake frame at the VESC."""
     delays = []
-    with ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:  # processes stop first
         rig = Rig(stack, Path(tmp), FOLLOW_LIVELINESS=str(follow_liveliness).lower())
         for _ in range(kills):
             ctrl = start_controller(rig.endpoint)
@@ -159,7 +159,7 @@ def measure_kill_to_brake(kills: int, follow_liveliness: bool = True) -> list[fl
 
 def measure_soak(seconds: float, period_s: float = 0.1) -> dict:
     """A live controller at 1/period_s Hz for ``seconds``: brake frames received meanwhile."""
-    with ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:  # processes stop first
         rig = Rig(stack, Path(tmp))
         ctrl = start_controller(rig.endpoint, period_s)
         stack.callback(procs.stop, ctrl)
@@ -188,7 +188,7 @@ def measure_estop(n: int) -> dict:
 
     lat = []
     out: dict = {}
-    with ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:  # processes stop first
         rig = Rig(stack, Path(tmp))
         pub = rig.session.declare_publisher(keys.topic(CAR, keys.CMD), express=True)
         estop = keys.topic(CAR, keys.ESTOP)
@@ -382,7 +382,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
     rng = np.random.default_rng(seed)
     sent: Counter = Counter()
     invalid: Counter = Counter()
-    with ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:  # processes stop first
         tmp = Path(tmp)
         endpoint = stack.enter_context(procs.router(log_path=tmp / "router.log"))
         vesc = VescEmulator(link=tmp / "vesc").start()
