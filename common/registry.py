@@ -42,7 +42,7 @@ class ControllerSpec:
     module: str
     """Python module of the command."""
     policy: str | None = None
-    """Shipped policy it runs (services/policy/models/NAME.npz), if any."""
+    """Shipped policy it runs (common/data/policies/NAME.npz), if any."""
     label: str = ""
 
 

@@ -94,7 +94,7 @@ class SpeedChange(_Strict):
 
 
 class ObstacleSpec(_Strict):
-    """An obstacle car (kinematic: it does not react to contacts); see common/actors.py."""
+    """An obstacle car (kinematic: it does not react to contacts); see sim/actors.py."""
 
     x: float
     y: float
@@ -143,7 +143,7 @@ class Traffic(_Strict):
     heading: Literal["default", "reversed"] = "default"
     """default: the ego drives with the traffic; reversed: against it (paper's reversed heading)."""
     driver: str = "pure_pursuit"
-    """Traffic driver name (racecav.services.sim.traffic)."""
+    """Traffic driver name (racecav.sim.traffic)."""
     min_gap_m: float = Field(1.5, gt=0)
     """Minimum arc-length gap between any two cars at the start."""
 
@@ -208,7 +208,7 @@ class Scenario(_Strict):
 
 @dataclass(frozen=True)
 class TrialObstacle:
-    """A concrete obstacle of one trial (radians, SI); common/actors.py moves it."""
+    """A concrete obstacle of one trial (radians, SI); sim/actors.py moves it."""
 
     x: float
     y: float

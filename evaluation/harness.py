@@ -58,7 +58,7 @@ def _hold_speed_throttle(speed: float) -> float:
 
 def _controller(spec: registry.ControllerSpec) -> Controller:
     """The registry's controller with its weights file and its scripted program resolved."""
-    from racecav.services.policy.model import resolve_policy_path
+    from racecav.common.policy import resolve_policy_path
 
     args = spec.args
     if "HOLD" in args:  # straight ahead at the throttle that holds HOLD_SPEED

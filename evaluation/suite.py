@@ -8,7 +8,7 @@ A family file (common/data/suites/NAME.toml, fields in docs/world.md) declares f
 conflicts (crossing from either side at 45-135 deg, head-on with an offset, turning across or
 into the ego's road, braking to a stop in the ego's lane, a stopped car, two staggered actors)
 as ranges. Each generated file is one scenario (common/scenario.py) whose actors are timed by the
-ego (start trigger on its time to arrival + synchronised arrival, common/actors.py). Every file
+ego (start trigger on its time to arrival + synchronised arrival, sim/actors.py). Every file
 is validated at generation on the fast world: a non-evading ego driving straight at 1 m/s and at
 full throttle must collide in every check trial (randomised as in the file, and with the ego's
 start shifted 5 cm to either side: a margin against near misses), else the file is redrawn
@@ -309,7 +309,7 @@ def straight_collisions(scenarios: list[Scenario], speeds=REFERENCE_SPEEDS, tria
     :return: bool (len(scenarios), len(speeds)): True where every trial collided.
     """
     from racecav.common.vehicle import load_car, throttle_for_speed
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.sim.fast_world import FastWorld
 
     car = load_car()
     out = np.zeros((len(scenarios), len(speeds)), bool)

@@ -285,7 +285,7 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
                   "The same three scenarios with the obstacle timed by the ego (common/data/scenarios/conflict-*.toml): "
                   "it waits until the ego is 4 s from the crossing centre at its current speed, then re-solves its "
                   "speed every control period (0.5-2.0 m/s) to arrive there together with the ego, and holds its "
-                  "speed once the ego is within 1.0 m or 0.8 s (common/actors.py). A car that does not evade collides "
+                  "speed once the ego is within 1.0 m or 0.8 s (sim/actors.py). A car that does not evade collides "
                   f"at any speed. {trials} trials per cell (trial i: seed {next(iter(seeds.values()), 0)} + i), "
                   "95 % Wilson intervals; the reference rows must be near 0.", "",
                   "| controller | " + " | ".join(f"{SHORT[s]} conflict" for s in SCENARIOS)

@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _policy_path(model: str | None, tmp: Path) -> tuple[str, str]:
-    from racecav.services.policy.model import SHIPPED, resolve_policy_path
+    from racecav.common.policy import SHIPPED, resolve_policy_path
 
     if model:
         return model, model
@@ -70,7 +70,7 @@ def closed_loop(cfg, seeds: int):
     from racecav.common.messages import VehicleState
     from racecav.common.vehicle import load_car
     from racecav.services.baseline.service import MpcApfController
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.sim.bullet_world import BulletWorld
 
     car = load_car(cfg.baseline.car)
     steps, msgs, outcomes = [], [], []
@@ -84,7 +84,7 @@ def closed_loop(cfg, seeds: int):
         with BulletWorld(scen, car=car) as w:
             w.reset(seed=seed)
             for k in range(int(round(w.scenario.duration_s / car.control_period_s))):
-                x, y, yaw, vx = w.agent_state()[:4]
+                x, y, yaw, vx = w.agent_state()[0]
                 stamp = int(round(w.t * 1e9))
                 scan = make_scan(w.scan_ranges, stamp, k, "sim", w.spec)
                 state = VehicleState(stamp_ns=stamp, seq=k, source="sim", x=x, y=y, yaw=yaw, vx=vx,
@@ -97,7 +97,7 @@ def closed_loop(cfg, seeds: int):
                 w.step(np.asarray(a))
                 if w.collided:
                     break
-            outcomes.append((scen, seed, w.success(), w.collided))
+            outcomes.append((scen, seed, bool(w.success()[0]), w.collided))
     return np.array(steps, dtype=float), msgs, outcomes
 
 
@@ -201,7 +201,7 @@ def end_to_end(args_cmd: list[str], msgs, n: int, rate_hz: float, endpoint: str,
 def run(args: argparse.Namespace, cfg) -> int:
     from racecav.common import procs
     from racecav.common.bench import dump_json, summarize, table, write_section
-    from racecav.services.policy.model import load_policy
+    from racecav.common.policy import load_policy
 
     tmp = Path(tempfile.mkdtemp(prefix="racecav-bench-"))
     model_ref, model_desc = _policy_path(args.model, tmp)

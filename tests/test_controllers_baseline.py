@@ -69,7 +69,7 @@ def scenario_file(tmp_path):
 def drive(scenario: str, act, steps: int | None = None):
     """Run ``act(scan, state) -> (a_T, a_delta)`` in a BulletWorld; returns the world's outcome
     and the ego's trajectory (x, y)."""
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.sim.bullet_world import BulletWorld
 
     car = load_car()
     with BulletWorld(scenario, car=car) as w:
@@ -77,7 +77,7 @@ def drive(scenario: str, act, steps: int | None = None):
         steps = steps or int(round(w.scenario.duration_s / car.control_period_s))
         traj = []
         for k in range(steps):
-            x, y, yaw, vx = w.agent_state()[:4]
+            x, y, yaw, vx = w.agent_state()[0]
             traj.append((x, y))
             stamp = int(round(w.t * 1e9))
             scan = make_scan(w.scan_ranges, stamp, k, "sim", w.spec)
@@ -85,15 +85,15 @@ def drive(scenario: str, act, steps: int | None = None):
                                  steering_angle=float(w.steer[0]))
             if getattr(act, "wants_truth", False):  # oracle: ground-truth obstacles as the sim publishes them
                 truth = ObstacleStates(stamp_ns=stamp, seq=k, obstacles=[
-                    Obstacle(id=i + 1, x=o[0], y=o[1], yaw=o[2], speed=o[3]) for i, o in enumerate(w.obstacles())])
+                    Obstacle(id=i + 1, x=o[0], y=o[1], yaw=o[2], speed=o[3]) for i, o in enumerate(w.obstacles()[0])])
                 a = act(scan, state, truth)
             else:
                 a = act(scan, state)
             w.step(np.asarray(a, np.float64))
             if w.collided:
                 break
-        return {"collided": w.collided, "contact": w.contact_with, "success": w.success(),
-                "progress": w.progress(), "obstacles": w.obstacles()}, np.array(traj)
+        return {"collided": w.collided, "contact": w.contact_with, "success": bool(w.success()[0]),
+                "progress": float(w.progress()[0]), "obstacles": w.obstacles()[0]}, np.array(traj)
 
 
 def baseline_act(**overrides):

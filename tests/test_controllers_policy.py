@@ -15,7 +15,7 @@ from racecav.common.codec import decode, encode
 from racecav.common.lidar import LidarSpec, make_scan, sanitize
 from racecav.common.messages import DriveCommand
 from racecav.common.vehicle import load_car, steer_from_action
-from racecav.services.policy.model import NumpyPolicy, load_policy
+from racecav.common.policy import NumpyPolicy, load_policy
 
 
 def random_policy_file(path, seed: int = 0, normalize: bool = True):
@@ -39,7 +39,7 @@ def test_numpy_policy_equals_sb3_reference(tmp_path):
     from stable_baselines3 import PPO
     from stable_baselines3.common.running_mean_std import RunningMeanStd
 
-    from racecav.services.policy.model import export_policy
+    from racecav.common.policy import export_policy
 
     torch.manual_seed(0)
 

@@ -10,7 +10,7 @@ from gymnasium.utils.env_checker import check_env
 
 import racecav.training  # noqa: F401  (registers racecav/Overtake-v0)
 from racecav.common.lidar import ray_angles
-from racecav.services.sim.fast_world import FastWorld
+from racecav.sim.fast_world import FastWorld
 from racecav.training.env import OvertakeEnv, reward
 from racecav.training.vec_env import FastVecEnv
 
@@ -147,7 +147,7 @@ def _rollout(seed, n=40):
         a = rng.uniform(-1, 1, (8, 2))
         o, r, d, _ = venv.step(a)
         out += [o, r[:, None], d[:, None]]
-    return out, venv.world.agent_state
+    return out, venv.world.agent_state()
 
 
 def test_determinism_under_seed():
@@ -306,7 +306,7 @@ def test_non_finite_actions_are_counted_and_neutralised():
     fw.reset()
     obs, (thr, a_d), col, _ = fw.step(np.array([[np.nan, 0.2], [1.0, np.inf]]))
     assert fw.bad_actions == 2
-    assert np.isfinite(fw.agent_state).all() and np.isfinite(obs).all()
+    assert np.isfinite(fw.agent_state()).all() and np.isfinite(obs).all()
     assert thr[0] == 0.0 and a_d[1] == 1.0
 
 
@@ -326,7 +326,7 @@ def test_respawned_obstacles_keep_away_from_the_agent():
 
 def test_chunk_culling_is_exact():
     """Skipping out-of-range, out-of-fan and occluded wall chunks changes no range at all."""
-    from racecav.services.sim import fast_kernels as K
+    from racecav.sim import fast_kernels as K
 
     fw = FastWorld(n_envs=16, obstacle_lidar=True, seed=1)
     fw.reset()

@@ -9,8 +9,8 @@ import pytest
 from racecav.common.config import EnvConfig
 from racecav.common.vehicle import load_car
 from racecav.common.world import load_world
-from racecav.services.sim.fast_world import FastWorld
-from racecav.training.env import BulletBackend
+from racecav.sim.fast_world import FastWorld
+from racecav.training.env import make_world
 from racecav.training.fit_bicycle import (DESIGNED, bullet_rollouts, closed_loop,
                                           designed_actions, fast_rollouts, open_floor_scenario,
                                           position_errors, random_actions, transient_actions)
@@ -95,7 +95,7 @@ def test_unfitted_model_is_worse(floor):
 
 def test_wall_ranges_parity():
     cfg = EnvConfig(backend="bullet", n_obstacles=0)
-    bw = BulletBackend(cfg, seed=0)
+    bw = make_world(cfg, seed=0)
     fw = FastWorld(n_envs=1, n_obstacles=0, seed=0)
     try:
         bw.reset(seed=0)
@@ -111,7 +111,7 @@ def test_wall_ranges_parity():
             yaw += rng.uniform(-0.5, 0.5)
             bw.set_state(x=x, y=y, yaw=yaw)
             fw.set_state(0, 0, x=x, y=y, yaw=yaw, v=0.0, w=0.0, delta=0.0)
-            rb = bw.bw.scan_ranges
+            rb = bw.scan_ranges
             rf = fw.ranges[0, 0]
             assert np.array_equal(np.isfinite(rb), np.isfinite(rf)) or \
                 np.mean(np.isfinite(rb) != np.isfinite(rf)) < 0.02
@@ -125,7 +125,7 @@ def test_wall_ranges_parity():
 
 def test_car_ranges_parity():
     """An obstacle car placed ahead of the agent is seen at the same ranges by both backends."""
-    bw = BulletBackend(EnvConfig(backend="bullet", n_obstacles=1), seed=0)
+    bw = make_world(EnvConfig(backend="bullet", n_obstacles=1), seed=0)
     fw = FastWorld(n_envs=1, n_obstacles=1, seed=0)
     try:
         bw.reset(seed=0)
@@ -139,7 +139,7 @@ def test_car_ranges_parity():
             bw.set_state(car=0, x=ax, y=ay, yaw=0.0)
             fw.set_state(0, 1, x=ox, y=oy, yaw=oyaw, v=0.0, w=0.0, delta=0.0)
             fw.set_state(0, 0, x=ax, y=ay, yaw=0.0, v=0.0, w=0.0, delta=0.0)
-            rb, rf = bw.bw.scan_ranges, fw.ranges[0, 0]
+            rb, rf = bw.scan_ranges, fw.ranges[0, 0]
             car_rays = rf < dx + 0.5  # rays that end on the obstacle in the fast world
             assert car_rays.sum() >= 5
             diffs.append(np.abs(rb[car_rays] - rf[car_rays]))

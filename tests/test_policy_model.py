@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from racecav.services.policy.model import MODELS_DIR, SHIPPED, NumpyPolicy, export_policy, load_policy
+from racecav.common.policy import MODELS_DIR, SHIPPED, NumpyPolicy, export_policy, load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 OBS = np.load(ROOT / "tests" / "data" / "policy_obs.npz")["obs"]
@@ -116,7 +116,7 @@ def test_bad_files_name_the_problem(tmp_path):
 
 
 def test_numpy_path_imports_no_torch():
-    code = ("import sys; from racecav.services.policy.model import load_policy; "
+    code = ("import sys; from racecav.common.policy import load_policy; "
             "from racecav.services.policy.fused import FusedPolicy; "
             "from racecav.common.lidar import LidarSpec; "
             "p = load_policy('racing'); p(__import__('numpy').full(170, 5.0)); "

@@ -15,7 +15,7 @@ import pytest
 from racecav.common import keys, procs
 from racecav.common.codec import encode
 from racecav.common.lidar import LidarSpec, sanitize
-from racecav.services.policy.model import MODELS_DIR, SHIPPED, load_policy
+from racecav.common.policy import MODELS_DIR, SHIPPED, load_policy
 from tests.test_controllers_policy import Commands, _test_scan, random_policy_file
 
 pytest.importorskip("onnxruntime")

@@ -17,7 +17,7 @@ import sys
 import numpy as np
 import pytest
 
-from racecav.common.actors import ActorBatch
+from racecav.sim.actors import ActorBatch
 from racecav.common.scenario import load_scenario, scenario_names
 from racecav.evaluation import suite as S
 
@@ -99,8 +99,8 @@ def test_unused_actor_slots_are_parked_far_away():
 def test_backends_move_actors_identically(name):
     """PyBullet and the fast world, fed the same ego trajectory (PyBullet's), place the scenario
     obstacles within 1 mm of each other at every control step."""
-    from racecav.services.sim.bullet_world import BulletWorld
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.sim.bullet_world import BulletWorld
+    from racecav.sim.fast_world import FastWorld
 
     sc = load_scenario(name)
     bw = BulletWorld(sc)
@@ -112,15 +112,15 @@ def test_backends_move_actors_identically(name):
         rng = np.random.default_rng(1)
         worst = 0.0
         for k in range(int(sc.duration_s / fw.control_period)):
-            x, y, yaw, v = bw.agent_state()[:4]
+            x, y, yaw, v = bw.agent_state()[0]
             fw.set_state(0, 0, x=x, y=y, yaw=yaw, v=v)
             a = np.array([[0.6 + 0.4 * math.sin(k / 7), 0.3 * rng.uniform(-1, 1)]])
             bw.step(a)
             fw.step(a)
-            ob_b = bw.obstacles()[:, :3]
+            ob_b = bw.obstacles()[0, :, :3]
             ob_f = fw.obstacles()[0, : len(ob_b), :3]
             worst = max(worst, float(np.abs(ob_b[:, :2] - ob_f[:, :2]).max()))
-            assert np.allclose(bw.obstacles()[:, 3], fw.obstacles()[0, : len(ob_b), 3], atol=1e-9)
+            assert np.allclose(bw.obstacles()[0, :, 3], fw.obstacles()[0, : len(ob_b), 3], atol=1e-9)
         assert worst < 1e-3, worst
     finally:
         bw.close()
@@ -264,9 +264,9 @@ def test_scenario_contact_step_parity(name):
     policy's actions recorded in PyBullet) replayed open loop in both backends: the contact
     happens in the same control step, give or take one."""
     from racecav.common.vehicle import load_car, throttle_for_speed
-    from racecav.services.policy.model import load_policy
-    from racecav.services.sim.bullet_world import BulletWorld
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.common.policy import load_policy
+    from racecav.sim.bullet_world import BulletWorld
+    from racecav.sim.fast_world import FastWorld
 
     sc = load_scenario(name)
     car = load_car()

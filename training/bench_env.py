@@ -43,7 +43,7 @@ def _windows(step_fn, seconds: float, per_step: int, window: float = 0.5) -> dic
 
 def fast_all_lidar(n_envs: int, seconds: float, seed: int = 0, parallel: bool = False) -> dict:
     """FastWorld, 15 obstacle cars + agent, lidar on every car; collided worlds reset."""
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.sim.fast_world import FastWorld
 
     fw = FastWorld(n_envs=n_envs, n_obstacles=15, obstacle_lidar=True, seed=seed, parallel=parallel)
     fw.reset()
@@ -82,7 +82,7 @@ def fast_vecenv(n_envs: int, seconds: float, seed: int = 0) -> dict:
 
 
 def _worker(n_envs: int, seconds: float, seed: int, barrier, queue) -> None:
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.sim.fast_world import FastWorld
 
     FastWorld(n_envs=1, n_obstacles=15, obstacle_lidar=True).reset()  # load the JIT cache first
     barrier.wait()
@@ -104,7 +104,7 @@ def fast_two_processes(n_envs: int, seconds: float) -> list[dict]:
 
 def bullet(seconds: float, lidar_all: bool, seed: int = 0) -> dict:
     """PyBullet racetrack, 15 obstacle cars + agent (one world), random agent actions."""
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.sim.bullet_world import BulletWorld
 
     rng = np.random.default_rng(seed)
     with BulletWorld("racetrack", lidar_all=lidar_all, n_obstacles=15, seed=seed) as bw:

@@ -8,8 +8,8 @@
   clipped to [-1, 1] (a full-lock to full-lock reversal within one step). No collision penalty:
   a contact of the agent with a wall or a car terminates the episode; the time limit truncates.
 
-Backends: ``fast`` (numba batched world, services/sim/fast_world.py) and ``bullet`` (the PyBullet
-reference world, services/sim/bullet_world.py). For training use :class:`racecav.training.vec_env.
+Backends: ``fast`` (numba batched world, sim/fast_world.py) and ``bullet`` (the PyBullet
+reference world, sim/bullet_world.py). For training use :class:`racecav.training.vec_env.
 FastVecEnv`, which steps a whole batch of fast worlds without a Python loop per env.
 """
 
@@ -21,7 +21,6 @@ import gymnasium as gym
 import numpy as np
 
 from racecav.common.config import EnvConfig
-from racecav.common.vehicle import throttle_from_action
 
 REVERSAL_PENALTY = -2.0
 THROTTLE_REWARD_GAIN = 5.0
@@ -48,20 +47,11 @@ def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
     return EnvConfig.model_validate({**cfg.model_dump(), **update}) if update else cfg
 
 
-def make_traffic_driver(spec):
-    """A traffic driver from its config string ("centerline", "policy:PATH") or an object."""
-    if isinstance(spec, str) and spec.startswith("policy:"):
-        from racecav.training.policy_io import load_numpy_policy  # written with the training issue
-
-        return load_numpy_policy(spec.split(":", 1)[1])
-    return spec
-
-
 def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None) -> list:
     """The fast worlds of a batch of ``n_envs``: traffic worlds (``1 - scenario_share`` of
     them), then scenario worlds grouped by world geometry (sized by their number of files)."""
     from racecav.common.scenario import load_scenario, scenario_files
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.sim.fast_world import FastWorld
 
     n_scen = int(round(settings.scenario_share * n_envs)) if settings.scenarios else 0
     if settings.scenario_share > 0 and not settings.scenarios:
@@ -89,107 +79,39 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
 
 
 def make_world(settings: EnvConfig, n_envs: int = 1, seed: int | None = None, driver=None):
-    """Build the backend world of ``settings`` (fast: FastWorld with n_envs worlds)."""
-    driver = make_traffic_driver(settings.driver if driver is None else driver)
-    scale = settings.agent_speed_scale
-    if settings.backend == "fast":
-        from racecav.services.sim.fast_world import FastWorld
+    """The backend world of ``settings`` (fast: a FastWorld of n_envs worlds; bullet: a
+    BulletWorld on the racetrack); both implement racecav.sim.contract.World.
 
-        if scale is None and settings.n_obstacles == 0:
-            scale = 1.0
+    :param driver: a traffic driver object or policy callable overriding ``settings.driver``.
+    """
+    driver = settings.driver if driver is None else driver
+    scale = settings.agent_speed_scale
+    if scale is None and settings.n_obstacles == 0:
+        scale = 1.0  # the racing stage drives at the obstacle cars' speed
+    if settings.backend == "fast":
+        from racecav.sim.fast_world import FastWorld
+
         return FastWorld(n_envs=n_envs, world=settings.world, car=settings.car,
                          n_obstacles=settings.n_obstacles, heading=settings.heading, driver=driver,
                          agent_speed_scale=scale, control_period=settings.control_period_s,
                          seed=seed, parallel=settings.parallel)
+    from racecav.common.vehicle import load_car
+    from racecav.sim.bullet_world import BulletWorld
+
     if n_envs != 1:
         raise ValueError("backend: the bullet backend runs one world per env")
-    return BulletBackend(settings, driver=driver, seed=seed)
-
-
-class _PolicyTraffic:
-    """A policy callable as a BulletWorld traffic driver (it observes the cars' scans)."""
-
-    needs_lidar = True
-
-    def __init__(self, policy):
-        self.policy = policy
-
-    def reset(self, world, car, n, rng) -> None:
-        pass
-
-    def act(self, obs) -> np.ndarray:
-        return np.asarray(self.policy(obs.scans), dtype=np.float64).reshape(-1, 2)
-
-
-class BulletBackend:
-    """The PyBullet world (services/sim/bullet_world.py) behind the fast world's step API
-    (``seed``, ``reset``, ``step -> obs, (T, a_delta), collided, info``, ``agent_state``), so
-    the env treats both backends alike."""
-
-    def __init__(self, settings: EnvConfig, driver=None, seed: int | None = None):
-        from racecav.common.vehicle import load_car
-        from racecav.services.sim.bullet_world import BulletWorld
-
-        car = load_car(settings.car)
-        if settings.control_period_s is not None:
-            car = car.model_copy(update={"control_period_s": settings.control_period_s})
-        if settings.world != "racetrack":
-            raise ValueError(f"world: the overtaking env runs on the racetrack (got {settings.world!r})")
-        traffic = None
-        if driver is not None and not isinstance(driver, str):
-            # a BulletWorld TrafficDriver (reset + act) as is; any other callable is a policy
-            is_driver = hasattr(driver, "act") and hasattr(driver, "reset")
-            traffic = driver if is_driver else _PolicyTraffic(driver)
-        elif isinstance(driver, str) and driver not in ("centerline", "pure_pursuit"):
-            raise ValueError(f"driver: unknown traffic driver {driver!r}")
-        self.bw = BulletWorld("racetrack", car=car, traffic_driver=traffic,
-                              heading=settings.heading, n_obstacles=settings.n_obstacles,
-                              seed=seed or 0)
-        self.car, self.spec = car, self.bw.spec
-        self.control_period = car.control_period_s
-        scale = settings.agent_speed_scale
-        self.agent_speed_scale = (1.0 if settings.n_obstacles == 0 else car.agent_speed_scale) \
-            if scale is None else scale
-        self._seed = seed
-
-    def seed(self, seed: int | None) -> None:
-        self._seed = seed
-
-    def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
-        if seed is not None:
-            self._seed = seed
-        obs = self.bw.reset(seed=self._seed, options=options)
-        self._seed = None if self._seed is None else self._seed + 1
-        self.bw.cars[0].speed_scale = self.agent_speed_scale  # the racing stage runs at 1.0
-        return obs
-
-    def step(self, actions):
-        a = np.asarray(actions, dtype=np.float64).reshape(1, 2)
-        obs, _ri, collided, info = self.bw.step(a)
-        throttle = throttle_from_action(a[:, 0])
-        who = info["contact_with"]
-        car = int(who[3:]) if who.startswith("car") else -1
-        return obs, (throttle, np.clip(a[:, 1], -1.0, 1.0)), collided, {
-            "wall": np.array([who in ("wall", "ground", "rollover")]), "car": np.array([car])}
-
-    def set_state(self, env: int = 0, car: int = 0, *, x=0.0, y=0.0, yaw=0.0, v=0.0, w=None,
-                  delta=0.0) -> None:
-        self.bw.set_state(x, y, yaw, v=v, steer=delta, i=car)
-
-    @property
-    def agent_state(self) -> np.ndarray:
-        return self.bw.agent_state()[None, :4]
-
-    def progress(self) -> np.ndarray:
-        return np.array([self.bw.progress()])
-
-    def close(self) -> None:
-        self.bw.close()
+    if settings.world != "racetrack":
+        raise ValueError(f"world: the bullet overtaking env runs on the racetrack (got {settings.world!r})")
+    car = load_car(settings.car)
+    if settings.control_period_s is not None:
+        car = car.model_copy(update={"control_period_s": settings.control_period_s})
+    return BulletWorld("racetrack", car=car, traffic_driver=driver, heading=settings.heading,
+                       n_obstacles=settings.n_obstacles, seed=seed or 0, agent_speed_scale=scale)
 
 
 class BulletScenarios:
     """Scenario episodes on the PyBullet backend: each reset draws a scenario file and runs it in
-    a BulletWorld (rebuilt when the file changes), behind the fast world's step API."""
+    a BulletWorld (rebuilt when the file changes); the world contract passes through."""
 
     def __init__(self, scenarios: list, car, seed: int | None = None):
         self.scenarios, self.car = scenarios, car
@@ -203,7 +125,7 @@ class BulletScenarios:
         self.rng = np.random.default_rng(seed)
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
-        from racecav.services.sim.bullet_world import BulletWorld
+        from racecav.sim.bullet_world import BulletWorld
 
         if seed is not None:
             self.seed(seed)
@@ -216,23 +138,20 @@ class BulletScenarios:
         return self.bw.reset(seed=int(self.rng.integers(2**31 - 1)), options=options)
 
     def step(self, actions):
-        a = np.asarray(actions, dtype=np.float64).reshape(1, 2)
-        obs, _ri, collided, _info = self.bw.step(a)
-        return obs, (throttle_from_action(a[:, 0]), np.clip(a[:, 1], -1.0, 1.0)), collided, {}
+        return self.bw.step(np.asarray(actions, dtype=np.float64).reshape(1, 2))
 
     @property
     def time(self) -> np.ndarray:
-        return np.array([self.bw.t])
+        return self.bw.time
 
-    @property
     def agent_state(self) -> np.ndarray:
-        return self.bw.agent_state()[None, :4]
+        return self.bw.agent_state()
 
     def success(self) -> np.ndarray:
-        return np.array([self.bw.success()])
+        return self.bw.success()
 
     def progress(self) -> np.ndarray:
-        return np.array([self.bw.progress()])
+        return self.bw.progress()
 
     def close(self) -> None:
         if self.bw is not None:
@@ -298,7 +217,7 @@ class OvertakeEnv(gym.Env):
         self._stack = None
 
     def _observe(self, obs: np.ndarray, fresh: bool) -> np.ndarray:
-        from racecav.services.policy.model import ScanStack
+        from racecav.common.policy import ScanStack
 
         if self._stack is None or fresh:
             self._stack = ScanStack(self.n_stack)
@@ -328,7 +247,7 @@ class OvertakeEnv(gym.Env):
             truncated = (not terminated) and bool(self.world.time[0] >= self.world.time_limit[0] - 1e-9)
         else:
             truncated = (not terminated) and self._steps >= self.max_steps
-        x, y, yaw, v = self.world.agent_state[0]
+        x, y, yaw, v = self.world.agent_state()[0]
         out = {"x": float(x), "y": float(y), "yaw": float(yaw), "v": float(v)}
         if "wall" in info:
             out.update(contact_wall=bool(info["wall"][0]), contact_car=int(info["car"][0]))

@@ -79,7 +79,7 @@ def bullet_rollouts(scenario, car: CarParams, actions: np.ndarray, v0: np.ndarra
                     scales: np.ndarray, yaw0: np.ndarray | None = None) -> np.ndarray:
     """(S, T+1, 4) x, y, yaw, v of the PyBullet agent from (0, 0, yaw0 (default 0), v0) under
     ``actions``."""
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.sim.bullet_world import BulletWorld
 
     S, T, _ = actions.shape
     yaw0 = np.zeros(S) if yaw0 is None else yaw0
@@ -88,18 +88,18 @@ def bullet_rollouts(scenario, car: CarParams, actions: np.ndarray, v0: np.ndarra
         for s in range(S):
             bw.reset(seed=0)
             bw.cars[0].speed_scale = float(scales[s])  # agent speed scale (racetrack agent: 1.5)
-            bw.set_state(0.0, 0.0, float(yaw0[s]), v=float(v0[s]))
-            out[s, 0] = bw.agent_state()[:4]
+            bw.set_state(x=0.0, y=0.0, yaw=float(yaw0[s]), v=float(v0[s]))
+            out[s, 0] = bw.agent_state()[0]
             for t in range(T):
                 bw.step(actions[s, t][None])
-                out[s, t + 1] = bw.agent_state()[:4]
+                out[s, t + 1] = bw.agent_state()[0]
     return out
 
 
 def fast_rollouts(world, car: CarParams, bicycle, actions: np.ndarray, v0: np.ndarray,
                   scales: np.ndarray, yaw0: np.ndarray | None = None) -> np.ndarray:
     """The same rollouts in the fast backend (all sequences as one batch)."""
-    from racecav.services.sim.fast_world import FastWorld
+    from racecav.sim.fast_world import FastWorld
 
     S, T, _ = actions.shape
     yaw0 = np.zeros(S) if yaw0 is None else yaw0
@@ -111,10 +111,10 @@ def fast_rollouts(world, car: CarParams, bicycle, actions: np.ndarray, v0: np.nd
         fw.set_state(s, 0, x=0.0, y=0.0, yaw=float(yaw0[s]), v=float(v0[s]),
                      w=float(v0[s]) / (car.wheel_radius * scales[s]), delta=0.0)
     out = np.zeros((S, T + 1, 4))
-    out[:, 0] = fw.agent_state
+    out[:, 0] = fw.agent_state()
     for t in range(T):
         fw.step(actions[:, t])
-        out[:, t + 1] = fw.agent_state
+        out[:, t + 1] = fw.agent_state()
     return out
 
 
@@ -309,10 +309,10 @@ def wall_range_errors(car: CarParams, n_poses: int = 24, seed: int = 0) -> np.nd
     import math as m
 
     from racecav.common.config import EnvConfig
-    from racecav.services.sim.fast_world import FastWorld
-    from racecav.training.env import BulletBackend
+    from racecav.sim.fast_world import FastWorld
+    from racecav.training.env import make_world
 
-    bw = BulletBackend(EnvConfig(backend="bullet", n_obstacles=0), seed=seed)
+    bw = make_world(EnvConfig(backend="bullet", n_obstacles=0), seed=seed)
     fw = FastWorld(n_envs=1, n_obstacles=0, car=car, seed=seed)
     try:
         bw.reset(seed=seed)
@@ -325,7 +325,7 @@ def wall_range_errors(car: CarParams, n_poses: int = 24, seed: int = 0) -> np.nd
             x, y, yaw = x - off * m.sin(yaw), y + off * m.cos(yaw), yaw + rng.uniform(-0.5, 0.5)
             bw.set_state(x=x, y=y, yaw=yaw)
             fw.set_state(0, 0, x=x, y=y, yaw=yaw, v=0.0, w=0.0, delta=0.0)
-            rb, rf = bw.bw.scan_ranges, fw.ranges[0, 0]
+            rb, rf = bw.scan_ranges, fw.ranges[0, 0]
             both = np.isfinite(rb) & np.isfinite(rf)
             out.append(np.abs(rb[both] - rf[both]))
         return np.concatenate(out)
@@ -345,11 +345,11 @@ def closed_loop(car: CarParams, scale: float, steps: int = 300, s0: float = 3.0)
     each (or None))."""
     from racecav.common.config import EnvConfig
     from racecav.common.lidar import ray_angles
-    from racecav.services.sim.fast_world import FastWorld
-    from racecav.training.env import BulletBackend
+    from racecav.sim.fast_world import FastWorld
+    from racecav.training.env import make_world
 
     ang = ray_angles(car.lidar).astype(np.float64)
-    bw = BulletBackend(EnvConfig(backend="bullet", n_obstacles=0, agent_speed_scale=scale), seed=0)
+    bw = make_world(EnvConfig(backend="bullet", n_obstacles=0, agent_speed_scale=scale), seed=0)
     fw = FastWorld(1, n_obstacles=0, car=car, agent_speed_scale=scale, seed=0)
     try:
         bw.reset(seed=0)
@@ -357,13 +357,13 @@ def closed_loop(car: CarParams, scale: float, steps: int = 300, s0: float = 3.0)
         x, y, yaw = fw.world.centerline_pose(s0)
         bw.set_state(x=x, y=y, yaw=yaw)
         fw.set_state(0, 0, x=x, y=y, yaw=yaw, v=0.0)
-        ob, of = bw.bw._observe()[None], fw.agent_obs()
+        ob, of = bw._observe()[None], fw.agent_obs()
         tb, tf, hit = [], [], [None, None]
         for k in range(steps):
             ob, _, cb, _ = bw.step(gap_follower(ob[0], ang))
             of, _, cf, _ = fw.step(gap_follower(of[0], ang))
-            tb.append(bw.agent_state[0])
-            tf.append(fw.agent_state[0])
+            tb.append(bw.agent_state()[0])
+            tf.append(fw.agent_state()[0])
             for i, c in enumerate((cb[0], cf[0])):
                 if c and hit[i] is None:
                     hit[i] = k
@@ -465,7 +465,7 @@ def write_bicycle(car_name: str, b: BicycleParams, stats: dict) -> Path:
         f"# final error median {stats['final_err_median_after']:.3f} m, p90 {stats['final_err_p90_after']:.3f} m;"
         f" held-out sequences: median {stats['heldout_final_err_median']:.3f} m,"
         f" p90 {stats['heldout_final_err_p90']:.3f} m.",
-        "# Single-track model (services/sim/fast_kernels.py integrate): CoG lf/lr from the axles of an",
+        "# Single-track model (sim/fast_kernels.py integrate): CoG lf/lr from the axles of an",
         "# effective wheelbase lf + lr, yaw inertia iz, cornering stiffness coefficients c_sf/c_sr",
         "# (mu fixed) scaled by 1 + c_speed_inv (1/v - 1), steering lag (PyBullet's joint, not fitted) and",
         "# speed lag, speed loss in turns scrub * tan(delta)^2 + scrub_lat * |lateral acceleration|, and",

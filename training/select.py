@@ -9,7 +9,7 @@
   (the paper picked its checkpoints by evaluation too). Selection seeds (SELECT_SEED + k) differ from
   the report's (REPORT_SEED + k), so the reported rates are not the ones the pick was made on.
 - ``ship --run-dir DIR --checkpoint best|latest|STEP --name racing|default|reversed``: writes
-  services/policy/models/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
+  common/data/policies/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
   settings and evaluation to training/checkpoints/RUN/ (committed: the report and ``--resume``
   across sessions need them); ``select`` saves that record too, for runs that are not shipped.
 - ``report``: >= 100 trials per scenario for each shipped policy, learning curves, throughput,
@@ -55,7 +55,7 @@ def add_subcommands(sub) -> None:
     p.add_argument("--suite-episodes", type=int, default=512, help="runs with --scenarios: fast-world episodes "
                    "on the suite's train split (selection seeds) per checkpoint")
     p.set_defaults(stage="select")
-    p = sub.add_parser("ship", help="export a checkpoint as services/policy/models/NAME.{npz,json,zip}")
+    p = sub.add_parser("ship", help="export a checkpoint as common/data/policies/NAME.{npz,json,zip}")
     p.add_argument("--run-dir", type=Path, required=True)
     p.add_argument("--checkpoint", default="best", help="best (from eval.csv) | latest | STEP")
     p.add_argument("--name", required=True, help="racing | default | reversed (or any file name)")
@@ -78,7 +78,7 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1):
 
     from stable_baselines3 import PPO
 
-    from racecav.services.policy.model import NumpyPolicy, policy_arrays_from_sb3
+    from racecav.common.policy import NumpyPolicy, policy_arrays_from_sb3
 
     model = PPO.load(zip_path, device="cpu")
     arrays = policy_arrays_from_sb3(model)
@@ -160,9 +160,9 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
 
     :param record: keep the ego and obstacle paths of the first ``record`` trials (key "paths").
     """
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.sim.bullet_world import BulletWorld
 
-    from racecav.services.policy.model import ScanStack
+    from racecav.common.policy import ScanStack
 
     bw = BulletWorld(scenario)
     dur = bw.scenario.duration_s
@@ -179,12 +179,12 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
                 obs, _, col, _ = bw.step(policy(stack(obs[0])))
                 collided = bool(col[0])
                 if k < record:
-                    path.append([*bw.agent_state()[:2], *[c for o in bw.obstacles()[:, :2] for c in o]])
-            ok += bw.success()
+                    path.append([*bw.agent_state()[0, :2], *[c for o in bw.obstacles()[0, :, :2] for c in o]])
+            ok += bool(bw.success()[0])
             contact += collided
-            prog.append(bw.progress())
+            prog.append(float(bw.progress()[0]))
             if k < record:
-                paths.append({"xy": path, "success": bool(bw.success()), "contact": collided})
+                paths.append({"xy": path, "success": bool(bw.success()[0]), "contact": collided})
     finally:
         bw.close()
     out = {"success": ok / trials, "contact": contact / trials,
@@ -327,7 +327,7 @@ def _plot_eval(rows: list[dict], path: Path, title: str, intersection: bool) -> 
 def ship(args, cfg) -> int:
     from stable_baselines3 import PPO
 
-    from racecav.services.policy.model import MODELS_DIR, export_policy
+    from racecav.common.policy import MODELS_DIR, export_policy
     from racecav.common.bench import git_commit
 
     run_dir = args.run_dir
@@ -391,7 +391,7 @@ def save_run_record(run_dir: Path) -> Path:
 def report(args, cfg) -> int:
     import torch
 
-    from racecav.services.policy.model import MODELS_DIR, load_policy
+    from racecav.common.policy import MODELS_DIR, load_policy
 
     torch.set_num_threads(1)
     args_reuse.v = args.reuse
@@ -555,7 +555,7 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
           "| policy | shipped checkpoint | trials | " + " | ".join(SCENARIOS) + " | contact | no contact, short |",
           "|---|---|---|" + "---|" * len(SCENARIOS) + "---|---|"]
     for name, res in results.items():
-        meta = json.loads((REPO / "services/policy/models" / f"{name}.json").read_text())
+        meta = json.loads((REPO / "common/data/policies" / f"{name}.json").read_text())
         succ = " | ".join(f"{100 * res[s]['success']:.0f} %" for s in SCENARIOS)
         cont = "/".join(f"{100 * res[s]['contact']:.0f}" for s in SCENARIOS)
         short = "/".join(f"{100 * (1 - res[s]['success'] - res[s]['contact']):.0f}" for s in SCENARIOS)
@@ -584,8 +584,8 @@ def record_observations(path: Path, seed: int = 7) -> Path:
     intersection scans, including near-contact ones."""
     import numpy as np
 
-    from racecav.services.policy.model import load_policy
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.common.policy import load_policy
+    from racecav.sim.bullet_world import BulletWorld
     from racecav.training.vec_env import FastVecEnv
 
     pol = load_policy("racing")

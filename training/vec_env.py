@@ -8,7 +8,7 @@ episode; scenario episodes also report ``infos[i]["is_success"]``. Wrap it in ``
 episode returns and lengths.
 
 With ``scenarios`` and ``scenario_share`` a share of the batch runs scenario episodes (the
-conflict suite's train split: triggered, synchronised kinematic actors, common/actors.py), one
+conflict suite's train split: triggered, synchronised kinematic actors, sim/actors.py), one
 FastWorld per scenario world geometry, beside the traffic worlds; each scenario episode ends at
 its scenario's duration.
 """

@@ -1,6 +1,6 @@
 """The policy's hot path as one compiled kernel: scan ranges -> sanitise -> normalise -> MLP -> action.
 
-:class:`racecav.services.policy.model.NumpyPolicy` after :func:`racecav.common.lidar.sanitize` is
+:class:`racecav.common.policy.NumpyPolicy` after :func:`racecav.common.lidar.sanitize` is
 the reference; it costs ~12 numpy calls per scan, and their per-call overhead (not the 30 k
 FLOPs) is most of its ~17 us on this machine. One numba call does the same arithmetic in float32
 in a few microseconds (``racecav bench controllers``). Tests hold the two equal within 1e-5.
@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from racecav.common.lidar import LidarSpec
-from racecav.services.policy.model import NumpyPolicy
+from racecav.common.policy import NumpyPolicy
 
 
 @njit(cache=True, fastmath=False)

@@ -1,7 +1,7 @@
 """The shipped policy as an ONNX model (onnxruntime, onnxruntime-gpu, TensorRT on the Jetson).
 
 :func:`build_onnx` writes the whole hot path of :mod:`racecav.services.policy.fused` as ONNX
-nodes, from the shipped numpy weights (:class:`~racecav.services.policy.model.NumpyPolicy`), so
+nodes, from the shipped numpy weights (:class:`~racecav.common.policy.NumpyPolicy`), so
 the model takes a Scan's ranges as they are on the bus and returns the action the car drives:
 
     scan (B, 170) float32, metres, +inf = no return
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from racecav.common.lidar import LidarSpec
-from racecav.services.policy.model import NumpyPolicy
+from racecav.common.policy import NumpyPolicy
 
 OPSET = 17
 INPUT, OUTPUT = "scan", "action"
@@ -106,7 +106,7 @@ def export(name_or_path: str, out_dir: Path, car_name: str = "slash") -> tuple[P
     import onnx
 
     from racecav.common.vehicle import load_car
-    from racecav.services.policy.model import load_policy, resolve_policy_path
+    from racecav.common.policy import load_policy, resolve_policy_path
 
     car = load_car(car_name)
     policy = load_policy(name_or_path)

@@ -4,7 +4,7 @@ Newest Scan in (racecav/<car>/scan), one DriveCommand out per usable scan (racec
 express, high priority), naming the scan it answers. The observation is built exactly as in
 training: :func:`racecav.common.lidar.sanitize` (no return / beyond range -> range_max, closer
 than range_min -> range_min), then the normalisation shipped with the weights (inside
-:class:`racecav.services.policy.model.NumpyPolicy`), then plain-numpy inference (no torch in the
+:class:`racecav.common.policy.NumpyPolicy`), then plain-numpy inference (no torch in the
 loop): all three run as one compiled kernel (:mod:`racecav.services.policy.fused`), held
 equal to the numpy reference by tests. Stale, malformed and missing scans get no command and
 are counted (see :mod:`racecav.services.controller`).
@@ -20,7 +20,7 @@ from racecav.common.lidar import sanitize
 from racecav.common.messages import Scan
 from racecav.common.vehicle import load_car
 from racecav.services.controller import ControllerService
-from racecav.services.policy.model import ScanStack
+from racecav.common.policy import ScanStack
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,7 +42,7 @@ class PolicyService(ControllerService):
     answer_in_callback = True  # ~6 us per scan: answered as it arrives (services/controller.py)
 
     def __init__(self, cfg: Config, policy=None):
-        from racecav.services.policy.model import load_policy
+        from racecav.common.policy import load_policy
 
         pcfg = cfg.policy
         car = load_car(pcfg.car)

@@ -40,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # ------------------------------------------------------------------------------- false brakes
 def _centerline_action(fw, out: np.ndarray) -> np.ndarray:
-    from racecav.services.sim import fast_kernels as K
+    from racecav.sim import fast_kernels as K
 
     fw.vfac[:, 0] = 1.0
     fw.lane_offset[:, 0] = 0.0
@@ -66,7 +66,7 @@ def false_brakes(world: str, driver: str, laps: float, n_envs: int, horizon_s: f
     lap = len(fw.cl) * fw.cl_ds
     policy = None
     if driver != "centerline":
-        from racecav.services.policy.model import load_policy
+        from racecav.common.policy import load_policy
 
         policy = load_policy(driver)
     out = np.zeros((n_envs, fw.x.shape[1], 2))

@@ -30,7 +30,7 @@ def world_rate(lidar_all: bool, steps: int, seed: int = 0) -> dict:
     """Time ``steps`` control steps of the 16-car racetrack (resets excluded)."""
     from tqdm import tqdm
 
-    from racecav.services.sim.bullet_world import BulletWorld
+    from racecav.sim.bullet_world import BulletWorld
 
     with BulletWorld("racetrack", lidar_all=lidar_all) as w:
         w.reset(seed=seed)

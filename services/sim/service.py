@@ -148,7 +148,7 @@ class SimService(Service):
 
     # ------------------------------------------------------------------ world and episodes
     def _make_world(self, scenario):
-        from racecav.services.sim.bullet_world import BulletWorld  # pybullet: only when running
+        from racecav.sim.bullet_world import BulletWorld  # pybullet: only when running
 
         spec = self.car_params.lidar
         if self.scfg.lidar_range_max is not None:
@@ -257,7 +257,7 @@ class SimService(Service):
         w, stamp = self.world, self._stamp()
         self.scan_seq = self.seq
         self.scan_t = w.t
-        x, y, yaw, vx, vy, r = w.agent_state()
+        x, y, yaw, vx, vy, r = w.car_state(0)
         # the state first: whoever judges the scan (baseline, safety supervisor) already has the
         # state of the same instant (samples of one session through one router keep their order)
         self.pub_state.put(VehicleState(stamp_ns=stamp, seq=self.seq, source="sim", x=x, y=y, yaw=yaw,
@@ -266,7 +266,7 @@ class SimService(Service):
         self.pub_scan.put(make_scan(w.scan_ranges, stamp, self.seq, "sim", w.spec))
         if self.scfg.publish_obstacles:
             obs = [Obstacle(id=i + 1, x=o[0], y=o[1], yaw=o[2], speed=o[3], length=self.car_params.length,
-                            width=self.car_params.width) for i, o in enumerate(w.obstacles())]
+                            width=self.car_params.width) for i, o in enumerate(w.obstacles()[0])]
             self.pub_obs.put(ObstacleStates(stamp_ns=stamp, seq=self.seq, obstacles=obs))
         self.seq += 1
         self._snapshot()
@@ -282,7 +282,8 @@ class SimService(Service):
         self._info = {"mode": self.scfg.mode, "scenario": w.scenario.name, "world": w.world.name,
                       "heading": w.heading, "seed": self.seed, "episode": self.episode, "t": w.t,
                       "steps": w.steps, "done": self.done, "collided": w.collided,
-                      "contact_with": w.contact_with, "progress_m": w.progress(), "success": w.success(),
+                      "contact_with": w.contact_with, "progress_m": float(w.progress()[0]),
+                      "success": bool(w.success()[0]),
                       "real_time_factor_target": self.scfg.real_time_factor, "real_time_factor": rtf,
                       "seq": self.seq - 1, "started": self.started}
 
@@ -291,7 +292,7 @@ class SimService(Service):
         if w.collided or w.t >= w.scenario.duration_s - 1e-9:
             self.done = True
             self.log.info("episode %d done at t=%.2f s: %s, progress %.2f m, success %s", self.episode,
-                          w.t, w.contact_with or "time up", w.progress(), w.success())
+                          w.t, w.contact_with or "time up", w.progress()[0], w.success()[0])
         self._publish()
 
     # ------------------------------------------------------------------ loop

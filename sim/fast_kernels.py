@@ -1,7 +1,7 @@
 """Numba kernels of the fast batched world: lidar depth buffer, contacts, single-track model, traffic.
 
 Arrays are batched as (n_worlds, n_cars, ...); car 0 of every world is the agent. Everything here
-is plain arithmetic on arrays handed in by :mod:`racecav.services.sim.fast_world`, which reads
+is plain arithmetic on arrays handed in by :mod:`racecav.sim.fast_world`, which reads
 the geometry (World.walls), car (CarParams) and lidar (LidarSpec) definitions: no parameter lives
 in this file.
 

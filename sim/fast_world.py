@@ -1,7 +1,8 @@
-"""FastWorld: N racetrack worlds stepped together (numba), the training backend.
+"""FastWorld: N worlds stepped together (numba), the training backend.
 
-Each world holds the agent (car 0) and up to 15 obstacle cars driven by a pluggable traffic
-driver; every car can have the 170-ray lidar. Geometry comes from :class:`racecav.common.world.World`
+Each world holds the agent (car 0) and up to 15 obstacle cars: traffic lapping a loop world under
+a pluggable driver (racecav.sim.traffic), or the kinematic actors of scenario files
+(racecav.sim.actors); every car can have the 170-ray lidar. Geometry comes from :class:`racecav.common.world.World`
 (``walls``, ``centerline``, ``lane_width``, ``wall_thickness``), the car from
 :class:`racecav.common.vehicle.CarParams` (box, actuation, fitted single-track model ``bicycle``)
 and the lidar from its :class:`racecav.common.lidar.LidarSpec`: nothing is copied here.
@@ -12,20 +13,20 @@ speed follows the shared ``wheel_speed_step`` (AutoVRL friction model) and the s
 ``steer_rate_limit``; the kernel integrates the fitted kinematic single-track model and checks
 contacts after every substep; the lidar is taken once at the end of the control step.
 
-The API mirrors the contract (.notes/WORLD_CONTRACT.md): ``reset(seed, options) -> obs (N, 170)``,
-``step(actions (N, 2)) -> obs, (T, a_delta), collided, info``, ``agent_state``, ``set_state``.
+It implements the world contract (:class:`racecav.sim.contract.World`), as the PyBullet backend
+does with one world.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Callable, Protocol
 
 import numpy as np
 
 from racecav.common import lidar as lidar_mod
 from racecav.common import vehicle as vehicle_mod
-from racecav.services.sim import fast_kernels as K
+from racecav.sim import fast_kernels as K
+from racecav.sim.traffic import make_driver
 
 CENTERLINE_DS = 0.05  # m, spacing of the dense centerline table used by resets and traffic
 RESPAWN_TRIES = 24
@@ -36,59 +37,6 @@ OBSTACLE_SPEED_FRACTION = (0.55, 1.0)  # each obstacle car's cruise speed / top 
 GRAVITY = 9.81
 WALLS_PER_CHUNK = 4
 V_KIN = 0.3  # m/s: below this speed the single-track model is kinematic (tyre model singular)
-
-
-class TrafficDriver(Protocol):
-    """Drives the obstacle cars: returns normalised actions (N, C-1, 2) for cars 1..C-1."""
-
-    needs_lidar: bool
-
-    def __call__(self, world: "FastWorld") -> np.ndarray: ...
-
-
-class CenterlineDriver:
-    """Vectorised pure pursuit of the centerline, each car on its own lateral offset and at its
-    own fraction of the obstacle top speed, slowing for curves and for a car ahead."""
-
-    needs_lidar = False
-
-    def __init__(self, a_lat: float = 3.0):
-        """:param a_lat: lateral acceleration the speed profile allows in curves (m/s^2)."""
-        self.a_lat = a_lat
-
-    def __call__(self, fw: "FastWorld") -> np.ndarray:
-        K.pure_pursuit(fw.x, fw.y, fw.yaw, fw.v, fw.active, fw.cl_idx, fw.lane_offset, fw.vfac,
-                       fw.cl, fw.cl_ds, fw.car.wheelbase, fw.car.steer_gain, fw.car.v_max,
-                       self.a_lat, fw.car.width, 1, fw._traffic_act)
-        return fw._traffic_act[:, 1:]
-
-
-class PolicyDriver:
-    """Obstacle cars driven by a policy on their own batched observations (e.g. the trained
-    racing policy as a numpy MLP): ``policy(obs (B, 170)) -> actions (B, 2)``."""
-
-    needs_lidar = True
-
-    def __init__(self, policy: Callable[[np.ndarray], np.ndarray]):
-        self.policy = policy
-
-    def __call__(self, fw: "FastWorld") -> np.ndarray:
-        obs = fw.observations()[:, 1:]
-        n, c, r = obs.shape
-        return np.asarray(self.policy(obs.reshape(n * c, r)), dtype=np.float64).reshape(n, c, 2)
-
-
-def make_driver(driver) -> TrafficDriver:
-    """``"centerline"``, a TrafficDriver, or a plain callable policy (wrapped in PolicyDriver)."""
-    if driver is None or driver in ("centerline", "pure_pursuit"):
-        return CenterlineDriver()
-    if isinstance(driver, str):
-        raise ValueError(f"traffic driver: unknown name {driver!r} (known: 'centerline' = 'pure_pursuit')")
-    if hasattr(driver, "needs_lidar"):
-        return driver
-    if callable(driver):
-        return PolicyDriver(driver)
-    raise ValueError(f"traffic driver: expected a name or a callable, got {driver!r}")
 
 
 def dense_centerline(world, ds: float = CENTERLINE_DS) -> np.ndarray:
@@ -139,7 +87,7 @@ class FastWorld:
                  parallel: bool = False, scenarios=None):
         self.scenarios = list(scenarios or [])
         if self.scenarios:
-            # scenario episodes: the ego and the scenario's kinematic actors (common/actors.py)
+            # scenario episodes: the ego and the scenario's kinematic actors (sim/actors.py)
             worlds = {sc.world for sc in self.scenarios}
             if len(worlds) != 1:
                 raise ValueError(f"scenarios: one world per FastWorld, got {sorted(worlds)}")
@@ -163,7 +111,7 @@ class FastWorld:
         self.n_obstacles = n_obstacles
         self.n_cars = C = 1 + n_obstacles
         self.heading = heading
-        self.driver = make_driver(driver)
+        self.driver = make_driver(driver, backend="fast")
         self.obstacle_lidar = self.driver.needs_lidar if obstacle_lidar is None else obstacle_lidar
         self.agent_speed_scale = car.agent_speed_scale if agent_speed_scale is None else agent_speed_scale
         self.control_period = car.control_period_s if control_period is None else float(control_period)
@@ -237,7 +185,7 @@ class FastWorld:
         self.scenario_of_env: np.ndarray | None = None
         """Scenario index per world (validation, evaluation); None: drawn at each reset."""
         if self.scenarios:
-            from racecav.common.actors import ActorBatch
+            from racecav.sim.actors import ActorBatch
 
             self.actors = ActorBatch(N, n_obstacles)
             self.dynamic = np.zeros((N, C), dtype=bool)  # only the ego is integrated
@@ -369,7 +317,7 @@ class FastWorld:
             a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=-1.0)
         self.actions[:, 0] = a
         if self.actors is not None:
-            self.actors.control(self.agent_state)
+            self.actors.control(self.agent_state())
         elif self.n_cars > 1:
             self.actions[:, 1:] = self.driver(self)
         car = self.car
@@ -464,9 +412,8 @@ class FastWorld:
         ``obstacle_lidar``)."""
         return lidar_mod.sanitize(self.ranges, self.spec)
 
-    @property
     def agent_state(self) -> np.ndarray:
-        """(N, 4) agent x, y, yaw, v."""
+        """(N, 4) agent x, y, yaw, forward speed v."""
         return np.stack([self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.v[:, 0]], axis=1)
 
     def progress(self) -> np.ndarray:
@@ -476,6 +423,10 @@ class FastWorld:
             return self.prog.copy()
         x0, y0, yaw0 = self.start_pose.T
         return (self.x[:, 0] - x0) * np.cos(yaw0) + (self.y[:, 0] - y0) * np.sin(yaw0)
+
+    def contact(self) -> np.ndarray:
+        """(N,) the agent touched something since the reset."""
+        return self.collided.copy()
 
     def success(self) -> np.ndarray:
         """(N,) no contact since the reset and at least the scenario's minimum progress."""

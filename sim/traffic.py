@@ -1,19 +1,29 @@
-"""Drivers of the obstacle cars lapping the racetrack (pluggable).
+"""Drivers of the obstacle cars lapping a loop world, for both backends, and their one factory.
 
-A driver sees every car (poses, speeds and, if it asks for them, lidar observations) and returns
-normalised actions (a_T, a_delta) for the obstacle cars, which go through the same actuation
-(:mod:`racecav.common.vehicle`) as the agent. The centerline pure-pursuit driver ships now; the
-trained racing policy plugs in as another :class:`TrafficDriver` (``needs_lidar = True``).
+A driver returns normalised actions (a_T, a_delta) for the obstacle cars, which go through the
+same actuation (:mod:`racecav.common.vehicle`) as the agent. :func:`make_driver` turns a name
+(``pure_pursuit`` = ``centerline``, ``policy:NAME_OR_PATH``), a policy callable or a driver object
+into the driver a backend calls:
+
+- PyBullet (one world): ``reset(world, car, n, rng)`` then ``act(TrafficObs) -> (n, 2|3)``;
+- the fast world (N worlds batched): ``driver(fast_world) -> (N, C-1, 2)``.
+
+The pure-pursuit centerline follower has one implementation per backend, as the vehicle model
+does: :class:`PurePursuitDriver` (per car, numpy) and :class:`CenterlineDriver` (batched numba
+kernel, slowing for curves); :class:`PolicyDriver` (a trained policy on each car's own scan, e.g.
+the racing policy) serves both.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from racecav.common.vehicle import CarParams
 from racecav.common.world import World
+from racecav.sim import fast_kernels as K
 
 
 @dataclass
@@ -100,35 +110,65 @@ class PurePursuitDriver(TrafficDriver):
         return np.stack([a_thr, a_steer, brake], axis=1)
 
 
+class CenterlineDriver:
+    """Vectorised pure pursuit of the centerline, each car on its own lateral offset and at its
+    own fraction of the obstacle top speed, slowing for curves and for a car ahead."""
+
+    needs_lidar = False
+
+    def __init__(self, a_lat: float = 3.0):
+        """:param a_lat: lateral acceleration the speed profile allows in curves (m/s^2)."""
+        self.a_lat = a_lat
+
+    def __call__(self, fw: "FastWorld") -> np.ndarray:
+        K.pure_pursuit(fw.x, fw.y, fw.yaw, fw.v, fw.active, fw.cl_idx, fw.lane_offset, fw.vfac,
+                       fw.cl, fw.cl_ds, fw.car.wheelbase, fw.car.steer_gain, fw.car.v_max,
+                       self.a_lat, fw.car.width, 1, fw._traffic_act)
+        return fw._traffic_act[:, 1:]
+
+
 class PolicyDriver(TrafficDriver):
-    """Obstacle cars driven by a trained policy (the paper's racing policy): each car acts on its
-    own sanitized 170-ray scan, like the agent."""
+    """Obstacle cars driven by a policy (e.g. the trained racing policy as a numpy MLP), each car
+    on its own sanitized scan: ``policy(obs (B, n_rays)) -> actions (B, 2)``. Both backends."""
 
     needs_lidar = True
 
-    def __init__(self, policy):
-        """:param policy: callable ``obs (n, n_rays) -> actions (n, 2)`` in [-1, 1]."""
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray]):
         self.policy = policy
 
-    def act(self, obs: TrafficObs) -> np.ndarray:
+    def act(self, obs: TrafficObs) -> np.ndarray:  # PyBullet
         return np.asarray(self.policy(obs.scans), dtype=np.float64).reshape(-1, 2)
 
+    def __call__(self, fw) -> np.ndarray:  # the fast world: every world's cars in one batch
+        obs = fw.observations()[:, 1:]
+        n, c, r = obs.shape
+        return np.asarray(self.policy(obs.reshape(n * c, r)), dtype=np.float64).reshape(n, c, 2)
 
-DRIVERS = {"pure_pursuit": PurePursuitDriver, "centerline": PurePursuitDriver}
 
+def make_driver(spec, backend: str = "bullet"):
+    """The traffic driver of ``spec`` for ``backend`` ("bullet" or "fast").
 
-def make_driver(name: str) -> TrafficDriver:
-    """A traffic driver by name (the scenario's ``traffic.driver``): a key of DRIVERS, or
-    ``policy:NAME_OR_PATH`` for a shipped or exported policy (racecav.training.policy_io)."""
-    if name.startswith("policy:"):
-        from racecav.training.policy_io import load_numpy_policy
+    :param spec: None / "pure_pursuit" / "centerline" (the centerline follower), "policy:NAME_OR_PATH"
+        (a shipped or exported policy, common/policy.py), a driver object (used as is) or a plain
+        policy callable (wrapped in :class:`PolicyDriver`).
+    :raises ValueError: naming an unknown driver or a policy file that cannot be loaded.
+    """
+    if backend not in ("bullet", "fast"):
+        raise ValueError(f"backend: expected 'bullet' or 'fast', got {backend!r}")
+    if spec is None or spec in ("pure_pursuit", "centerline"):
+        return CenterlineDriver() if backend == "fast" else PurePursuitDriver()
+    if isinstance(spec, str):
+        if spec.startswith("policy:"):
+            from racecav.common.policy import load_policy
 
-        try:
-            return PolicyDriver(load_numpy_policy(name.split(":", 1)[1]))
-        except (OSError, ValueError, KeyError) as e:
-            raise ValueError(f"traffic.driver: cannot load {name!r}: {e}") from None
-    try:
-        return DRIVERS[name]()
-    except KeyError:
-        raise ValueError(f"traffic.driver: unknown driver {name!r} (known: {sorted(DRIVERS)} "
-                         "or policy:NAME_OR_PATH)") from None
+            try:
+                return PolicyDriver(load_policy(spec.split(":", 1)[1]))
+            except (OSError, ValueError, KeyError) as e:
+                raise ValueError(f"traffic.driver: cannot load {spec!r}: {e}") from None
+        raise ValueError(f"traffic.driver: unknown driver {spec!r} (known: pure_pursuit = centerline, "
+                         "policy:NAME_OR_PATH)")
+    if hasattr(spec, "needs_lidar"):
+        return spec
+    if callable(spec):
+        return PolicyDriver(spec)
+    raise ValueError(f"traffic driver: expected a name or a callable, got {spec!r}")

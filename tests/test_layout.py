@@ -1,0 +1,78 @@
+"""The dependency direction: common <- sim <- services, training, evaluation <- cli.
+
+Every module is imported in a fresh interpreter (no import loop hides behind an import inside a
+function), and its imports of racecav modules, at module level or inside functions, point only
+downward.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LAYERS = {"common": 0, "sim": 1, "services": 2, "training": 2, "evaluation": 2, "deploy": 2, "racecav": 3}
+"""Package folder -> layer; a module may import its own layer's folder and lower layers."""
+ALLOWED_SIDEWAYS = {
+    # evaluation and training read shipped policies and scenario tools; services stay independent
+    ("training", "services"), ("evaluation", "services"), ("evaluation", "training"),
+    ("services", "training"),
+}
+"""(importer, imported) pairs of the same layer that are allowed."""
+FOLDERS = ("common", "sim", "services", "training", "evaluation", "deploy", "racecav")
+
+
+def _modules() -> list[tuple[str, Path]]:
+    out = []
+    for folder in FOLDERS:
+        for f in sorted((ROOT / folder).rglob("*.py")):
+            if "__pycache__" in f.parts:
+                continue
+            rel = f.relative_to(ROOT / folder).with_suffix("")
+            parts = [] if folder == "racecav" else [folder]
+            name = ".".join(["racecav", *parts, *rel.parts]).removesuffix(".__init__")
+            out.append((name, f))
+    return out
+
+
+def _folder(module: str) -> str | None:
+    parts = module.split(".")
+    if parts[0] != "racecav":
+        return None
+    if len(parts) == 1 or parts[1] in ("cli", "__main__"):
+        return "racecav"
+    return parts[1] if parts[1] in LAYERS else None
+
+
+def test_imports_point_downward():
+    bad = []
+    for name, path in _modules():
+        src = _folder(name)
+        for node in ast.walk(ast.parse(path.read_text())):
+            targets = []
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [node.module]
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            for t in targets:
+                dst = _folder(t)
+                if dst is None or dst == src:
+                    continue
+                if LAYERS[dst] > LAYERS[src] or (LAYERS[dst] == LAYERS[src] and (src, dst) not in ALLOWED_SIDEWAYS):
+                    bad.append(f"{name} imports {t}")
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.timeout(300)
+def test_every_module_imports_alone():
+    """A fresh interpreter per module: an import loop or a missing dependency fails here."""
+    names = [n for n, _ in _modules() if not n.endswith("__main__")]
+    code = ("import importlib, sys\nbad = []\nfor n in sys.argv[1:]:\n"
+            "    r = __import__('subprocess').run([sys.executable, '-c', f'import {n}'], capture_output=True, text=True)\n"
+            "    if r.returncode: bad.append((n, r.stderr.strip().splitlines()[-1:]))\nprint(bad)\n")
+    r = subprocess.run([sys.executable, "-c", code, *names], capture_output=True, text=True, timeout=280)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
