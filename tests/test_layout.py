@@ -18,9 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {"common": 0, "sim": 1, "services": 2, "training": 2, "evaluation": 2, "deploy": 2, "racecav": 3}
 """Package folder -> layer; a module may import its own layer's folder and lower layers."""
 ALLOWED_SIDEWAYS = {
-    # evaluation and training read shipped policies and scenario tools; services stay independent
-    ("training", "services"), ("evaluation", "services"), ("evaluation", "training"),
-    ("services", "training"),
+    ("training", "services"),  # `racecav train export --onnx` writes the policy service's ONNX model
+    ("services", "training"),  # `racecav bench safety` drives laps in the training world
 }
 """(importer, imported) pairs of the same layer that are allowed."""
 FOLDERS = ("common", "sim", "services", "training", "evaluation", "deploy", "racecav")
