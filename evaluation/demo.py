@@ -25,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
-    from racecav.evaluation.evaluate import run_single
+    from racecav.evaluation.trials import run_single
     from racecav.evaluation.harness import CONTROLLERS, missing
 
     ctrl = CONTROLLERS.get(args.controller)

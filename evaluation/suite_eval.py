@@ -40,7 +40,7 @@ def suite_cells(spec: str, split: str) -> tuple[str, list[Cell]]:
 
 def run_cells(h, cells: list[Cell], k: int, seed: int, out: Path, resume: bool, bar) -> tuple[dict, BaseException | None]:
     """Run ``k`` trials of every cell on an open harness; returns ({file: RunResult}, error)."""
-    from racecav.evaluation.evaluate import run_trials
+    from racecav.evaluation.trials import run_trials
 
     results = {}
     for c in cells:
@@ -89,7 +89,7 @@ def run_suite(args, cfg) -> int:
     """``racecav eval --suite S --controller C``."""
     from tqdm import tqdm
 
-    from racecav.evaluation.evaluate import Interrupted, NoBar
+    from racecav.evaluation.trials import Interrupted, NoBar
     from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
     from racecav.evaluation.plots import plot_success_bars
 

@@ -52,7 +52,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     from tqdm import tqdm
 
     from racecav.common.scenario import SCENARIOS_DIR, load_scenario
-    from racecav.evaluation.evaluate import NoBar, run_trials, write_json
+    from racecav.evaluation.trials import NoBar, run_trials, write_json
     from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
 
     names = [c.strip() for c in (args.controllers or ",".join(registry.DEFAULT_TABLE)).split(",") if c.strip()]
