@@ -10,6 +10,7 @@ Evaluation, training selection, the benchmarks and the CLI read these; nothing e
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 PAPER_SCENARIOS = ("right-to-left", "head-to-head", "left-to-right")
 """Obstacle car from the ego's right, head-on, from its left (paper, Table 1 and Fig. 5)."""
@@ -44,6 +45,8 @@ class ControllerSpec:
     policy: str | None = None
     """Shipped policy it runs (common/data/policies/NAME.npz), if any."""
     label: str = ""
+    model: Path | None = None
+    """The weights file it needs, when resolved (the harness fills it in; ``--model`` overrides)."""
 
 
 HOLD_SPEED = 1.0

@@ -18,15 +18,14 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from racecav.common.vehicle import format_errors
+from racecav.common.vehicle import load_toml
 
 SCENARIOS_DIR = Path(__file__).parent / "data" / "scenarios"
 SUITES_RUNS_DIR = Path("runs/suites")
@@ -236,19 +235,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
 
     :raises ValueError: naming the file and the invalid field.
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = SCENARIOS_DIR / f"{name_or_path}.toml"
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"scenario file {path}: not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"scenario file {path}: invalid TOML: {e}") from None
-    try:
-        return Scenario.model_validate(data)
-    except ValidationError as e:
-        raise ValueError(f"scenario file {path}: {format_errors(e)}") from None
+    return load_toml(name_or_path, SCENARIOS_DIR, Scenario, "scenario")
 
 
 def scenario_names() -> list[str]:

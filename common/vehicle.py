@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -141,24 +142,37 @@ class CarParams(_Frozen):
         return self.w_max * self.wheel_radius
 
 
+def load_toml(name_or_path: str | Path, folder: Path, model: type[M], what: str) -> M:
+    """A TOML data file validated by a pydantic model: by name (``folder/NAME.toml``) or path.
+    The one loader of car, world, scenario and family files.
+
+    :raises ValueError: naming the file and what is wrong (missing, not TOML or not UTF-8, the
+        invalid field).
+    """
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = folder / f"{name_or_path}.toml"
+    try:
+        data = tomllib.loads(path.read_text())
+    except (FileNotFoundError, IsADirectoryError):
+        raise ValueError(f"{what} file {path}: not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{what} file {path}: invalid TOML: {e}") from None
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        raise ValueError(f"{what} file {path}: {format_errors(e)}") from None
+
+
 def load_car(name_or_path: str | Path = "slash") -> CarParams:
     """Load a car by name (common/data/cars/NAME.toml) or from a TOML file path.
 
     :raises ValueError: naming the file and the invalid field.
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = CARS_DIR / f"{name_or_path}.toml"
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"car file {path}: not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"car file {path}: invalid TOML: {e}") from None
-    try:
-        return CarParams.model_validate(data)
-    except ValidationError as e:
-        raise ValueError(f"car file {path}: {format_errors(e)}") from None
+    return load_toml(name_or_path, CARS_DIR, CarParams, "car")
+
+
+M = TypeVar("M", bound=BaseModel)
 
 
 def format_errors(e: ValidationError) -> str:

@@ -19,15 +19,14 @@ Both accept extra ``[[walls]]`` segments (x0, y0, x1, y1). Units m, angles in fi
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from racecav.common.vehicle import format_errors
+from racecav.common.vehicle import load_toml
 
 WORLDS_DIR = Path(__file__).parent / "data" / "worlds"
 CENTERLINE_STEP = 0.05
@@ -371,23 +370,11 @@ def load_world(name_or_path: str | Path = "racetrack") -> World:
 
     :raises ValueError: naming the file and the invalid field.
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = WORLDS_DIR / f"{name_or_path}.toml"
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"world file {path}: not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"world file {path}: invalid TOML: {e}") from None
-    try:
-        f = WorldFile.model_validate(data)
-    except ValidationError as e:
-        raise ValueError(f"world file {path}: {format_errors(e)}") from None
+    f = load_toml(name_or_path, WORLDS_DIR, WorldFile, "world")
     try:
         return build_world(f)
     except ValueError as e:
-        raise ValueError(f"world file {path}: {e}") from None
+        raise ValueError(f"world file {name_or_path}: {e}") from None
 
 
 def segment_distance(px, py, walls: np.ndarray) -> np.ndarray:

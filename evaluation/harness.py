@@ -16,6 +16,7 @@ trajectory for the same commands.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import threading
 import time
@@ -33,19 +34,8 @@ from racecav.evaluation import metrics
 from racecav.evaluation.results import Trajectory, Trial, stats
 
 
-@dataclass(frozen=True)
-class Controller:
-    """A controller the harness can evaluate: the racecav command that runs it."""
-
-    name: str
-    args: tuple[str, ...]
-    service: str
-    """Service name on the bus (liveliness/status key)."""
-    module: str
-    """Python module of the command (checked before starting)."""
-    model: Path | None = None
-    """Weights file the command needs, if any."""
-    label: str = ""
+Controller = registry.ControllerSpec
+"""A controller the harness runs: the registry's record with its weights file resolved."""
 
 
 def _hold_speed_throttle(speed: float) -> float:
@@ -64,8 +54,7 @@ def _controller(spec: registry.ControllerSpec) -> Controller:
     if "HOLD" in args:  # straight ahead at the throttle that holds HOLD_SPEED
         args = tuple(f"{_hold_speed_throttle(registry.HOLD_SPEED):.4f},0.0,100000000" if a == "HOLD" else a
                      for a in args)
-    model = resolve_policy_path(spec.policy) if spec.policy else None
-    return Controller(spec.name, args, spec.service, spec.module, model, spec.label)
+    return dataclasses.replace(spec, args=args, model=resolve_policy_path(spec.policy) if spec.policy else None)
 
 
 CONTROLLERS: dict[str, Controller] = {n: _controller(c) for n, c in registry.CONTROLLERS.items()}

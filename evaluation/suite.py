@@ -26,16 +26,15 @@ import json
 import logging
 import math
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from racecav.common.scenario import SUITES_RUNS_DIR as RUNS_DIR, Scenario, open_suite
-from racecav.common.vehicle import format_errors
+from racecav.common.vehicle import load_toml
 
 log = logging.getLogger("racecav.suite")
 
@@ -132,19 +131,7 @@ def load_families(name_or_path: str | Path) -> FamilyFile:
 
     :raises ValueError: naming the file and the invalid field.
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = SUITES_DIR / f"{name_or_path}.toml"
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"family file {path}: not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"family file {path}: invalid TOML: {e}") from None
-    try:
-        return FamilyFile.model_validate(data)
-    except ValidationError as e:
-        raise ValueError(f"family file {path}: {format_errors(e)}") from None
+    return load_toml(name_or_path, SUITES_DIR, FamilyFile, "family")
 
 
 # --------------------------------------------------------------------------------- drawing

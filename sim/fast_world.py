@@ -228,13 +228,17 @@ class FastWorld:
                           self.lane_offset, self.vfac, self.active, self.cl, self.cl_ds, u[i],
                           self.n_cars, self.heading == "reversed", self.lat_max, RESET_YAW_NOISE,
                           *OBSTACLE_SPEED_FRACTION)
+        self._restart(envs)
+        self._scan(envs)
+
+    def _restart(self, envs) -> None:
+        """Episode clock, steering command, slip, yaw rate and contact flags of ``envs`` to zero."""
         self.delta_cmd[envs] = 0.0
         self.beta[envs] = 0.0
         self.r[envs] = 0.0
         self.time[envs] = 0.0
         self.wall_hit[envs] = False
         self.car_hit[envs] = -1
-        self._scan(envs)
 
     def _place_scenarios(self, envs: np.ndarray) -> None:
         """Draw a scenario and a trial for each world of ``envs``; place the ego and actors."""
@@ -263,12 +267,7 @@ class FastWorld:
         self.collided[n] = False
         envs = np.array([n])
         self.delta[envs] = 0.0
-        self.delta_cmd[envs] = 0.0
-        self.beta[envs] = 0.0
-        self.r[envs] = 0.0
-        self.time[envs] = 0.0
-        self.wall_hit[envs] = False
-        self.car_hit[envs] = -1
+        self._restart(envs)
         if rescan:
             self._actors_to_cars()
             self._scan(envs)

@@ -113,7 +113,9 @@ def test_shipped_scenarios_validate(name):
     s = load_scenario(name)
     w = load_world(s.world)
     t = s.sample(np.random.default_rng(0))
-    if s.traffic is None and not s.conflict_timed:
+    if s.traffic is not None:
+        assert w.centerline is not None
+    elif not s.conflict_timed:
         # timed so that a non-evading ego (holding its start speed) meets the obstacle
         ego = s.ego
         tc = -ego.x / ego.speed
@@ -122,8 +124,8 @@ def test_shipped_scenarios_validate(name):
         ox, oy = o.x + math.cos(math.radians(o.yaw_deg)) * dist, o.y + math.sin(math.radians(o.yaw_deg)) * dist
         assert math.hypot(ox, oy) < 0.3
         assert len(t.obstacles) == len(s.obstacles)
-    else:
-        assert w.centerline is not None
+    else:  # conflict-timed: tests/test_scenarios_conflict.py checks that a straight car collides
+        assert len(t.obstacles) == len(s.obstacles) and t.obstacles[0].sync is not None
 
 
 def test_broken_scenario_names_the_field(tmp_path):
