@@ -42,9 +42,15 @@ def test_racing_policy_is_shipped():
     assert "racing" in PRESENT
 
 
+def stacked(obs: np.ndarray, k: int) -> np.ndarray:
+    """Recorded observations as a stacked policy sees them: each with the k-1 before it."""
+    return np.concatenate([np.roll(obs, i, axis=0) for i in range(k)], axis=1) if k > 1 else obs
+
+
 @pytest.mark.parametrize("name", PRESENT)
 def test_numpy_equals_sb3_on_recorded_observations(name):
     pol = load_policy(name)
+    OBS = stacked(globals()["OBS"], pol.obs_stack)
     ref = _sb3_actions(MODELS_DIR / f"{name}.zip", OBS)
     got = pol(OBS)
     assert got.dtype == np.float32 and got.shape == (len(OBS), 2)
@@ -64,7 +70,8 @@ def test_metadata(name):
         assert key in meta, key
     assert meta["training_steps"] > 0
     pol = load_policy(name)
-    assert pol.n_params == 170 * 64 + 64 + 64 * 64 + 64 + 64 * 2 + 2
+    assert pol.n_params == 170 * pol.obs_stack * 64 + 64 + 64 * 64 + 64 + 64 * 2 + 2
+    assert pol.obs_stack == meta.get("obs_stack", 1)
     assert pol.normalize == (meta["normalization"] is not None)
     assert pol.metadata["training_steps"] == meta["training_steps"]
 

@@ -50,6 +50,8 @@ def test_exported_model_equals_numpy_on_recorded_scans(tmp_path, name):
     ort = OnnxPolicy(out / "model.onnx")
     pol = load_policy(name)
     scans = recorded_scans()
+    if pol.obs_stack > 1:  # each scan with the ones before it, newest first
+        scans = np.concatenate([np.roll(scans, i, axis=0) for i in range(pol.obs_stack)], axis=1)
     ref = pol(sanitize(scans, SPEC))
     got = ort.batch(scans)
     assert got.shape == ref.shape and np.abs(got - ref).max() < 1e-5
@@ -57,6 +59,7 @@ def test_exported_model_equals_numpy_on_recorded_scans(tmp_path, name):
     assert len(np.unique(got.round(3), axis=0)) > 20  # not a constant output
     meta = json.loads((out / "model.json").read_text())
     assert meta["input"]["rays"]["n"] == 170 and meta["input"]["rays"]["angle_min"] == pytest.approx(-np.pi / 4)
+    assert meta["input"]["stack"] == pol.obs_stack and meta["input"]["shape"][1] == 170 * pol.obs_stack
     assert meta["output"]["actions"] == ["a_throttle", "a_steer"] and meta["output"]["clip"] == [-1.0, 1.0]
     assert meta["normalization"]["inside_model"] == pol.normalize and meta["network"]["n_params"] == pol.n_params
 

@@ -109,6 +109,9 @@ def test_backends_move_actors_identically(name):
         fw = FastWorld(n_envs=1, scenarios=[sc])
         fw.reset(seed=0)
         fw.place_trial(0, 0, bw.trial)
+        # the same trial starts the same in both: ego pose and speed, obstacles
+        assert np.allclose(bw.agent_state(), fw.agent_state(), atol=1e-3)
+        assert np.allclose(bw.obstacles(), fw.obstacles()[:, : bw.obstacles().shape[1]], atol=1e-3)
         rng = np.random.default_rng(1)
         worst = 0.0
         for k in range(int(sc.duration_s / fw.control_period)):

@@ -52,18 +52,3 @@ def test_both_backends_keep_the_contract(kind):
             close = getattr(w, "close", None)
             if close:
                 close()
-
-
-def test_backends_agree_on_a_scenario_start():
-    """Same scenario, same trial: the same obstacle, the same ego pose and speed."""
-    sc = load_scenario("conflict-right-to-left")
-    bw = BulletWorld(sc)
-    try:
-        bw.reset(seed=4)
-        fw = FastWorld(n_envs=1, scenarios=[sc])
-        fw.reset(seed=0)
-        fw.place_trial(0, 0, bw.trial)
-        assert np.allclose(bw.agent_state(), fw.agent_state(), atol=1e-3)
-        assert np.allclose(bw.obstacles(), fw.obstacles(), atol=1e-3)
-    finally:
-        bw.close()
