@@ -173,7 +173,7 @@ def measure_soak(seconds: float, period_s: float = 0.1) -> dict:
         episodes = sum(1 for i, t in enumerate(brakes) if i == 0 or t - brakes[i - 1] > 0.05)
         rpm = [r for r in rig.rpm_after(t_start) if r.t < t_end]
     return {"seconds": round(t_end - t_start, 1), "rpm_frames": len(rpm), "brake_frames": len(brakes),
-            "brake_episodes": episodes}
+            "brake_episodes": episodes, "load_avg_5min": round(os.getloadavg()[1], 2)}
 
 
 def measure_estop(n: int) -> dict:
@@ -510,7 +510,8 @@ def report(res: dict, command: str) -> str:
         ["same, timeout only (follow_liveliness = false, timeout_s 0.25)", f"{kt['n']} kills",
          f"median {_ms(kt)} ms, max {_ms(kt, 'max')} ms", "(reference)"],
         ["spurious brakes, live controller at 10 Hz", f"{soak.get('seconds', 0)} s",
-         f"{soak.get('brake_episodes', 'n/a')} episodes ({soak.get('brake_frames', 'n/a')} brake frames)", "0"],
+         f"{soak.get('brake_episodes', 'n/a')} episodes ({soak.get('brake_frames', 'n/a')} brake frames); "
+         f"load average {soak.get('load_avg_5min', 'n/a')} on {os.cpu_count()} cores", "0"],
         ["e-stop put -> brake", f"{el['n']} e-stops", f"median {_ms(el)} ms, max {_ms(el, 'max')} ms", ""],
         ["e-stop latched across actuator kill -9 + restart", "", str(est.get("latched_after_restart")), "True"],
         ["\" clear\\n\" does not clear; exactly \"clear\" does", "",

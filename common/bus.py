@@ -131,6 +131,10 @@ class RateLimitedLog:
 
         :param exc_info: an exception whose traceback is logged with the first line of a topic.
         """
+        topic = re.sub(r"\d+", "#", topic)  # "stale scan 123" and "stale scan 124" are one topic
+        if len(self._last) > 1000:  # bounded: topics come from input (names, sources)
+            self._last.clear()
+            self._suppressed.clear()
         now = time.monotonic()
         last = self._last.get(topic)
         if last is not None and now - last < self._period:
