@@ -382,8 +382,9 @@ TRAIN_PRESETS: dict[str, dict] = {
 class PolicyConfig(Section):
     """The DRL policy controller (``racecav policy``)."""
 
-    model: str = "reversed"
-    """Shipped policy name (reversed, default, racing) or path to a policy .npz."""
+    model: str = "avoid"
+    """Shipped policy name (avoid: trained on conflicts, the default; reversed, default: the
+    paper's; racing) or path to a policy .npz."""
     max_scan_age_s: float = Field(0.25, gt=0)
     """A scan that arrived longer ago than this (wall clock) gets no command: it is counted as
     stale. Also the limit on scan stamp age when the scan is stamped with this host's monotonic

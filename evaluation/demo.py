@@ -1,7 +1,7 @@
 """``racecav demo``: the README's main command (``make demo``).
 
-Starts the car's router, the sim service on the head-to-head scenario and the shipped
-reversed-heading policy service as separate processes (the evaluation harness does it, exactly
+Starts the car's router, the sim service on the head-to-head scenario and the shipped avoid
+policy service (trained on conflicts, common/data/policies/avoid.*) as separate processes (the evaluation harness does it, exactly
 as ``racecav eval`` does), runs a few seeded trials through them over Zenoh, prints each trial's
 outcome and the scan-to-command latency, writes the trajectory plot, and stops everything.
 """
@@ -18,7 +18,8 @@ from racecav.common.config import Config
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=int, default=5, help="trials to run")
     p.add_argument("--scenario", default="head-to-head", help="scenario name or TOML file")
-    p.add_argument("--controller", default="drl-reversed", help="controller (see racecav eval --help)")
+    p.add_argument("--controller", default="drl-avoid", help="controller (see racecav eval --help; default: the "
+                   "shipped avoid policy, trained on conflicts)")
     p.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
                    help="lockstep: reproducible, as fast as the machine allows; realtime: wall clock like the car")
     p.add_argument("--out-dir", type=Path, default=Path("runs/demo"), help="results, plot and logs")

@@ -160,7 +160,7 @@ def test_policy_service_with_other_weights(tmp_path):
     assert r.returncode == 2 and "--model applies to the drl-* controllers" in r.stderr
 
 
-@pytest.mark.parametrize("name", ["drl-reversed", "drl-default", "drl-racing", "mpc-apf"])
+@pytest.mark.parametrize("name", ["drl-avoid", "drl-reversed", "drl-default", "drl-racing", "mpc-apf"])
 def test_shipped_controllers_run_under_the_harness(tmp_path, name):
     ctrl = CONTROLLERS[name]
     why = missing(ctrl)
@@ -210,14 +210,14 @@ def test_table_writes_the_document(tmp_path):
     assert r.returncode == 2 and "nonsense" in r.stderr
 
 
-def test_demo_needs_the_shipped_reversed_policy(tmp_path):
-    if missing(CONTROLLERS["drl-reversed"]):
+def test_demo_runs_the_shipped_avoid_policy(tmp_path):
+    if missing(CONTROLLERS["drl-avoid"]):
         r = subprocess.run(procs.racecav_cmd("demo", "--out-dir", str(tmp_path)), capture_output=True, text=True,
                            timeout=60)
-        assert r.returncode == 1 and "reversed.npz" in r.stderr and "Nothing was started" in r.stderr
+        assert r.returncode == 1 and "avoid.npz" in r.stderr and "Nothing was started" in r.stderr
         return
     r = subprocess.run(procs.racecav_cmd("demo", "--trials", "1", "--out-dir", str(tmp_path)), capture_output=True,
                        text=True, timeout=180)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "trial 0 (seed 0)" in r.stdout and "scan->command latency median" in r.stdout
-    assert (tmp_path / "head-to-head-drl-reversed.png").exists()
+    assert (tmp_path / "head-to-head-drl-avoid.png").exists()
