@@ -36,7 +36,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "bus": ("racecav.common.bench_bus", "scan publish-to-receive latency (client and peer mode), status queries, codec"),
     "train": ("racecav.training.bench_train", "PPO samples/s: the paper's setting vs more envs per rollout, larger minibatches, fewer epochs"),
     "sim": ("racecav.services.sim.bench", "PyBullet 16-car racetrack steps/s (lidar on agent / all cars) and the sim service's real-time factor"),
-    "faults": ("racecav.common.bench_faults", "reliability: kill -> brake, e-stop latch, lidar replug, router restart, fuzz; writes docs/reliability.md"),
+    "faults": ("racecav.services.bench_faults", "reliability: kill -> brake, e-stop latch, lidar replug, router restart, fuzz; writes docs/reliability.md"),
     "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
     "record": ("racecav.services.record.bench", "policy scan->command latency with racecav record / racecav ros2 running beside it; their per-message cost"),
     "safety": ("racecav.services.safety.bench", "safety supervisor: scan -> brake latency (real processes), false brakes over ~100 laps of the empty tracks (shadow mode)"),

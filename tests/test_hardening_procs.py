@@ -150,7 +150,7 @@ def test_emulator_sigterm_removes_its_link(tmp_path):
 # --- router restart ---------------------------------------------------------------------------
 
 def test_commands_flow_within_a_second_of_the_router_restarting():
-    from racecav.common.bench_faults import measure_router_restart
+    from racecav.services.bench_faults import measure_router_restart
 
     delays = measure_router_restart([0.5, 0.5])
     assert max(delays) < 1.0, delays  # zenoh's default retry (1 s growing to 4 s) took 2.5 s
