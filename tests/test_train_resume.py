@@ -120,7 +120,7 @@ def test_init_from_carries_weights_and_normalisation(tmp_path):
     ck = src / "checkpoints" / "step_000000256.zip"
     dst = tmp_path / "dst"
     assert _train(dst, 128, "--init-from", str(ck), "--world", "figure8") == 0
-    assert json.loads((dst / "config.json").read_text())["world"] == "figure8"
+    assert json.loads((dst / "config.json").read_text())["env"]["world"] == "figure8"
     # statistics carried over: the count keeps growing from the source's 256 samples
     src_count = _obs_count(ck.with_suffix(".vecnorm.pkl"))
     assert src_count >= 256 and _obs_count(dst / "latest.vecnorm.pkl") >= src_count + 128
