@@ -63,15 +63,6 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print(f"racecav eval --table: unknown section(s) {sorted(set(sections) - set(SECTIONS))}; known: {SECTIONS}",
               file=sys.stderr)
         return 2
-    suite_cells_ = []
-    if "suite" in sections:
-        from racecav.evaluation.suite_eval import suite_cells
-
-        try:
-            suite_name, suite_cells_ = suite_cells(args.suite or "conflicts", "test")
-        except ValueError as e:
-            print(f"racecav eval --table: {e}", file=sys.stderr)
-            return 2
     unknown = [n for n in names if n not in CONTROLLERS]
     if unknown:
         print(f"racecav eval --table: unknown controller(s) {unknown}; known: {sorted(CONTROLLERS)}", file=sys.stderr)
@@ -83,6 +74,24 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print("(evaluate the others with --controllers " + ",".join(n for n in names if n not in absent) + ")",
               file=sys.stderr)
         return 2
+    suite_cells_ = []
+    if "suite" in sections:
+        from racecav.evaluation.suite_eval import suite_cells
+
+        try:
+            if args.suite is None:  # the default suite: made on first use, exactly as documented
+                from racecav.common.scenario import SUITES_RUNS_DIR
+                from racecav.evaluation import suite as S
+
+                if not (SUITES_RUNS_DIR / "conflicts" / "suite.json").is_file():
+                    print("racecav eval --table: generating the conflict suite first "
+                          "(racecav suite generate --name conflicts --n 140 --n-train 1400 --seed 0)")
+                    S.generate(S.load_families("conflicts"), SUITES_RUNS_DIR / "conflicts", 140, 1400, 0,
+                               progress=not args.no_progress)
+            suite_name, suite_cells_ = suite_cells(args.suite or "conflicts", "test")
+        except ValueError as e:
+            print(f"racecav eval --table: {e}", file=sys.stderr)
+            return 2
     trials = args.trials if args.trials is not None else 100
     if trials < 1:
         print("racecav eval: --trials must be >= 1", file=sys.stderr)

@@ -193,7 +193,9 @@ def test_eval_record_writes_one_file_per_trial(tmp_path):
     assert len(trials) == 2
     for t in trials:
         _car, scans, recorded = load_run(rec_dir / f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap")
-        assert len(scans) == t["steps"]
+        # the trial's scans; the file may also hold the next reset's first scan if it is published
+        # before the recorder switches files (the rotate query races the reset on a busy box)
+        assert t["steps"] <= len(scans) <= t["steps"] + 1
         # every command in the file answers a scan of this trial, and none the harness saw is
         # missing (the file may also hold the answer to the final scan, after the trial's end)
         assert set(recorded) <= {(s.seq, s.stamp_ns) for s in scans}
