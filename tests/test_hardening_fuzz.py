@@ -28,8 +28,13 @@ from racecav.common.messages import DriveCommand
 from racecav.services.actuator.emulator import VescEmulator
 
 CAR = "car0"
-PER_KEY = 120
+PER_KEY = 80   # per key and round
+ROUNDS = 3     # after the warm-up
 WARMUP = 40
+# Memory: allocator arenas and zenoh's buffers step up once, at some round, when a large payload
+# or a new thread first needs them (20-36 MB seen, in round one or two); a leak grows in every
+# round. So the check is on the smallest growth over the rounds.
+ROUND_GROWTH_KB = 8_000
 
 # who subscribes to which input key (the services' setup(); baseline: ego_state auto reads state)
 SUBSCRIBERS = {
@@ -81,9 +86,9 @@ def test_hostile_payloads_on_every_key_and_query(services, session):
     pids = {n: s.pid for n, s in before.items()}
     sent: Counter = Counter()
     invalid: Counter = Counter()
-    rss0 = {}
+    rss: list[dict[str, int]] = []
 
-    for rnd, n in enumerate((WARMUP, PER_KEY)):
+    for n in (WARMUP,) + (PER_KEY,) * ROUNDS:
         for leaf in fuzz.INPUTS:
             key = keys.topic(CAR, leaf)
 
@@ -96,9 +101,8 @@ def test_hostile_payloads_on_every_key_and_query(services, session):
                 time.sleep(0.0005)
 
             send()
-        if rnd == 0:  # after a warm-up round on every key (buffers and caches grown once)
-            time.sleep(0.5)
-            rss0 = {n: rss_kb(p) for n, p in pids.items()}
+        time.sleep(0.5)
+        rss.append({name: rss_kb(pid) for name, pid in pids.items()})
 
     # queries: bad payloads are refused with an error reply, the queryable keeps answering
     bad_queries = 0
@@ -130,9 +134,9 @@ def test_hostile_payloads_on_every_key_and_query(services, session):
         assert got_invalid >= want_invalid, (name, got_invalid, want_invalid)
         assert st.errors == 0, f"{name}: uncaught exception in a callback: {st.last_error}"
     assert after["sim"].invalid - before["sim"].invalid >= bad_queries + invalid[keys.CMD]
-    for name, pid in pids.items():  # memory flat after warm-up (a leak per payload would show)
-        grown = rss_kb(pid) - rss0[name]
-        assert grown < 30_000, f"{name}: RSS grew {grown} kB over {sum(sent.values())} payloads"
+    for name in pids:  # no leak per payload: some round after the warm-up leaves memory flat
+        growth = [b[name] - a[name] for a, b in zip(rss, rss[1:])]
+        assert min(growth) < ROUND_GROWTH_KB, f"{name}: RSS grew in every round of {PER_KEY} payloads per key: {growth} kB"
     assert router_pid == after["router"].pid
 
     # still answers valid input: sim reset and scenario query, a valid scan answered by the
