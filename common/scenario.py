@@ -279,10 +279,12 @@ def open_suite(name_or_dir: str | Path) -> Suite:
 
 def scenario_files(spec: str | Path, split: str = "train") -> list[Path]:
     """Scenario files of a suite's split (suite NAME or folder with suite.json), of a folder
-    (every *.toml in it), or one file.
+    (every *.toml in it), or one file; several of these separated by commas.
 
     :raises ValueError: when nothing is found, naming what was looked for.
     """
+    if "," in str(spec):
+        return [f for part in str(spec).split(",") if part.strip() for f in scenario_files(part.strip(), split)]
     p = Path(spec)
     if p.is_file():
         return [p]

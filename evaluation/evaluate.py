@@ -64,9 +64,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-dir", type=Path, default=OUT_DIR, help="where runs, logs and JSONL files go")
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"), help="--table: the document written")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--safety", choices=["on", "off"], default="off",
+    p.add_argument("--safety", choices=["on", "off", "both"], default="off",
                    help="on: also run racecav safety (the emergency-brake supervisor, a brake input of the "
-                        "sim's mux); results go to *-safety.json, the controller is named CONTROLLER+safety")
+                        "sim's mux); results go to *-safety.json, the controller is named CONTROLLER+safety; "
+                        "both (--table only): every cell without and with it, and the on/off table")
     p.add_argument("--record", nargs="?", const=True, type=Path, metavar="DIR",
                    help="write one MCAP run file per trial (racecav record; default DIR: "
                         "OUT_DIR/mcap/SCENARIO-CONTROLLER); replay one with racecav replay")
@@ -82,6 +83,9 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
         from racecav.evaluation.table import run_table
 
         return guarded(lambda: run_table(args, cfg))
+    if args.safety == "both":
+        print("racecav eval: --safety both is for --table (a single run is on or off)", file=sys.stderr)
+        return 2
     if args.suite and args.controller:
         from racecav.evaluation.suite_eval import run_suite
 

@@ -14,6 +14,11 @@ full throttle must collide in every check trial (randomised as in the file, and 
 start shifted 5 cm to either side: a margin against near misses), else the file is redrawn
 (counted).
 
+A family may instead be timed by the clock (``timing = "clock"``: the actor starts after a drawn
+delay and keeps its speed): traffic that may or may not conflict, for a training mix that
+teaches reading the other car's motion rather than always evading. A family file of such
+families sets ``validate = false``; it is never a benchmark (common/data/suites/traffic.toml).
+
 Output: ``runs/suites/NAME/{train,test}/FAMILY-NNNN.toml`` and ``suite.json`` (family, seed and
 file of every scenario, the redraw counts). The two splits come from disjoint seeds
 (``[seed, split, family, index, attempt]``), so training never sees a test file.
@@ -75,6 +80,7 @@ class Common(_Strict):
     release_distance_m: Range = (0.8, 1.2)
     margin_s: float = Field(3.0, ge=0)
     progress_past_m: float = Field(1.5, ge=0)
+    start_s: Range = (0.0, 4.0)     # clock-timed families: the actor starts after this delay
 
     @model_validator(mode="after")
     def _ranges(self) -> "Common":
@@ -89,6 +95,9 @@ class Family(_Strict):
     kind: Literal["crossing", "head_on", "turning", "braking", "stopped", "staggered"]
     world: str
     weight: float = Field(1.0, gt=0)
+    timing: Literal["ego", "clock"] = "ego"
+    """ego: started and synchronised by the ego (a conflict at any ego speed); clock: starts
+    after ``common.start_s`` at its constant speed (may or may not conflict)."""
     side: Literal["right", "left", "either"] = "either"
     angle_deg: Range = (45.0, 135.0)
     lateral_offset_m: Range = (-0.5, 0.5)
@@ -115,6 +124,8 @@ class FamilyFile(_Strict):
     description: str = ""
     common: Common = Common()
     families: list[Family]
+    validate_conflicts: bool = Field(True, alias="validate")
+    """Every file must collide with a non-evading ego (a benchmark); false for traffic mixes."""
 
     @model_validator(mode="after")
     def _unique(self) -> "FamilyFile":
@@ -187,9 +198,11 @@ def _actor(x, y, yaw, speed, path=(), start=None, sync=None, changes=()) -> dict
     return o
 
 
-def _timing(rng, c: Common, ego_pt, actor_pt, dist: float, v_nom: float) -> tuple[dict, dict]:
+def _timing(rng, c: Common, f: Family, ego_pt, actor_pt, dist: float, v_nom: float) -> tuple[dict, dict | None]:
     """Start trigger (the ego's time to arrival at its point = the actor's nominal time to its
-    point) and synchronised arrival of one actor."""
+    point) and synchronised arrival of one actor; for a clock-timed family a start delay only."""
+    if f.timing == "clock":
+        return {"kind": "time", "value": _r(_u(rng, c.start_s))}, None
     start = {"kind": "time_to_arrival", "point": _pt(ego_pt), "value": _r(dist / v_nom)}
     sync = {"ego_point": _pt(ego_pt), "actor_point": _pt(actor_pt),
             "speed_min": _r(c.sync_speed[0]), "speed_max": _r(c.sync_speed[1]),
@@ -204,7 +217,7 @@ def _crossing_actor(rng, c: Common, f: Family, p, side: str, angle_deg: float, c
     dist = _u(rng, c.obstacle_distance_m)
     v = _u(rng, c.obstacle_speed)
     s0 = np.asarray(p) - dist * d
-    start, sync = _timing(rng, c, p, p, dist, v)
+    start, sync = _timing(rng, c, f, p, p, dist, v)
     chg = ()
     if changes:  # brake to a stop with the centre stop_distance before the ego's path
         dec = _u(rng, f.brake_decel)
@@ -232,7 +245,7 @@ def draw(rng: np.random.Generator, c: Common, f: Family) -> Draw:
         s0 = np.array([dist, y0 + off])
         d = (np.asarray(p) - s0) / np.hypot(*(np.asarray(p) - s0))
         v = _u(rng, c.obstacle_speed)
-        start, sync = _timing(rng, c, p, p, float(np.hypot(*(np.asarray(p) - s0))), v)
+        start, sync = _timing(rng, c, f, p, p, float(np.hypot(*(np.asarray(p) - s0))), v)
         obs.append(_actor(s0[0], s0[1], math.atan2(d[1], d[0]), v, start=start, sync=sync))
     elif f.kind == "turning":
         variant = f.variants[int(rng.integers(len(f.variants)))]
@@ -256,7 +269,7 @@ def draw(rng: np.random.Generator, c: Common, f: Family) -> Draw:
             raise ValueError("turning: the path does not cross the ego's path")
         ego_pt = (float(cp[0]), y0)
         v = _u(rng, c.obstacle_speed)
-        st, sync = _timing(rng, c, ego_pt, cp, s_c, v)
+        st, sync = _timing(rng, c, f, ego_pt, cp, s_c, v)
         obs.append(_actor(start[0], start[1], yaw, v, path=path, start=st, sync=sync))
         de = de + ego_pt[0]  # the ego's distance to its conflict point
     elif f.kind == "stopped":
@@ -275,8 +288,9 @@ def scenario_data(d: Draw, c: Common, f: Family, name: str) -> dict:
     """The scenario file's fields."""
     return {
         "name": name,
-        "description": f"conflict suite, family {f.name} ({f.kind}): timed by the ego; "
-                       "a non-evading ego collides at 1 m/s and at full throttle",
+        "description": (f"conflict suite, family {f.name} ({f.kind}): timed by the ego; "
+                        "a non-evading ego collides at 1 m/s and at full throttle") if f.timing == "ego" else
+                       f"traffic, family {f.name} ({f.kind}): timed by the clock; may or may not conflict",
         "world": f.world,
         "duration_s": _r(d.ego_distance / 0.6 + c.margin_s),
         "ego": d.ego,
@@ -374,7 +388,7 @@ def generate(ff: FamilyFile, out: Path, n_test: int, n_train: int, seed: int = 0
                     data = scenario_data(draw(rng, ff.common, fam), ff.common, fam, name)
                     batch.append((i, data, Scenario.model_validate(data)))
                 ok = np.ones(len(batch), bool)
-                for dy in VALIDATION_SHIFTS:  # a margin: no near miss passes for a conflict
+                for dy in VALIDATION_SHIFTS if ff.validate_conflicts else ():  # a margin: no near miss passes for a conflict
                     shifted = [_shift_ego(b[2], dy) for b in batch]
                     ok &= straight_collisions(shifted, seed=seed + 7919 * si).all(axis=1)
                 pending = []

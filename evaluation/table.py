@@ -5,6 +5,10 @@ for every controller: paired trials), through the real services (one harness per
 router + sim + controller processes; the scenario switches through the sim's queryable). Each
 cell keeps its per-trial JSONL under runs/eval/table/, so ``--resume`` continues an interrupted
 table; cells that did not finish are marked partial in the document.
+
+``--safety on`` runs every controller with the emergency-brake supervisor (``racecav safety``, a
+brake input of the sim's mux), ``--safety both`` without and with it on the same seeds: the
+document then gets the supervisor's on/off table (success and collisions per cell).
 """
 
 from __future__ import annotations
@@ -25,6 +29,14 @@ SHORT = registry.SHORT
 PAPER_TABLE1 = registry.PAPER_TABLE1
 SECTIONS = ("table1", "conflict", "suite")
 IMG_DIR = Path("docs/img")
+
+
+def _label(key: str) -> str:
+    """Row label of a controller key: NAME, or NAME+safety for a run with the supervisor."""
+    from racecav.evaluation.harness import CONTROLLERS
+
+    base, plus, _ = key.partition("+safety")
+    return CONTROLLERS[base].label + (" + safety" if plus else "")
 
 
 def _pct(v: float | None) -> str:
@@ -92,6 +104,8 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         except ValueError as e:
             print(f"racecav eval --table: {e}", file=sys.stderr)
             return 2
+    safety = getattr(args, "safety", "off")
+    runs = [(n, on) for n in names for on in {"off": (False,), "on": (True,), "both": (False, True)}[safety]]
     trials = args.trials if args.trials is not None else 100
     if trials < 1:
         print("racecav eval: --trials must be >= 1", file=sys.stderr)
@@ -104,29 +118,31 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     suite_results: dict[str, dict] = {}
     wall0 = time.monotonic()
     error = None
-    total = len(names) * (len(scen) * trials + len(suite_cells_) * k_suite)
+    total = len(runs) * (len(scen) * trials + len(suite_cells_) * k_suite)
     bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="table", dynamic_ncols=True,
                                                  mininterval=1.0)
     try:
-        for name in names:
+        for name, on in runs:
             ctrl = CONTROLLERS[name]
-            bar.set_description_str(name)
+            key = name + ("+safety" if on else "")  # as run_trials names it
+            bar.set_description_str(key)
             first = scen[0] if scen else str(suite_cells_[0].path.resolve())
             try:
-                with Harness(cfg, ctrl, args.mode, first, out / "logs" / name, args.real_time_factor) as h:
+                with Harness(cfg, ctrl, args.mode, first, out / "logs" / key, args.real_time_factor, safety=on) as h:
                     for sc in scen:
-                        stem = f"{name}-{sc}" + ("" if args.mode == "lockstep" else f"-{args.mode}")
+                        stem = (f"{name}-{sc}" + ("" if args.mode == "lockstep" else f"-{args.mode}")
+                                + ("-safety" if on else ""))
                         res, error = run_trials(h, sc, SCENARIOS_DIR / f"{sc}.toml", trials, seeds[sc],
                                                 out / f"{stem}.jsonl", args.resume, bar=bar)
-                        results[(name, sc)] = res
+                        results[(key, sc)] = res
                         write_json(res, out / f"{stem}.json")
                         if error is not None:
                             raise error
                     if suite_cells_:
                         from racecav.evaluation.suite_eval import run_cells
 
-                        suite_results[name], error = run_cells(
-                            h, suite_cells_, k_suite, args.seed or 0, out / f"suite-{suite_name}" / name,
+                        suite_results[key], error = run_cells(
+                            h, suite_cells_, k_suite, args.seed or 0, out / f"suite-{suite_name}" / key,
                             args.resume, bar)
                         if error is not None:
                             raise error
@@ -146,10 +162,11 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
                  for n, r in suite_results.items()}
         for n, doc_ in suite.items():
             (out / f"suite-{suite_name}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
-    doc = write_results_doc(results, names, trials, seeds, args, wall, error, sections=sections, suite=suite)
-    for name in names:
+    keys_ = [n + ("+safety" if safety == "on" else "") for n in names]  # the main tables' rows
+    doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections, suite=suite)
+    for name in keys_:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
-        print(f"{CONTROLLERS[name].label:34s} " + "  ".join(
+        print(f"{_label(name):34s} " + "  ".join(
             f"{SHORT[sc]} {cell_text(r) if r else 'not run':28s}" for sc, r in zip(SCENARIOS, cells)))
     print(f"wrote {doc} ({wall / 60:.1f} min)")
     if error is not None:
@@ -166,7 +183,6 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     from racecav.common.vehicle import load_car
     from racecav.common.world import load_world
     from racecav.common.bench import git_commit
-    from racecav.evaluation.harness import CONTROLLERS
     from racecav.evaluation.plots import plot_success_bars, plot_trajectories
 
     doc = Path(args.doc)
@@ -182,6 +198,8 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         cmd += f" --controllers {args.controllers}"
     if args.mode != "lockstep":
         cmd += f" --mode {args.mode}"
+    if getattr(args, "safety", "off") != "off":
+        cmd += f" --safety {args.safety}"
     stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     trial_wall = sum(t.wall_s for r in results.values() for t in r.trials)
     lines = [
@@ -211,7 +229,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         for k, sc in enumerate(SCENARIOS):
             r = results.get((n, sc))
             cells += [cell_text(r) if r else "not run", _pct(paper[k]) if paper else "-"]
-        lines.append(f"| {CONTROLLERS[n].label} | " + " | ".join(cells) + " |")
+        lines.append(f"| {_label(n)} | " + " | ".join(cells) + " |")
     lines += ["", "Success = no contact during the scenario's duration and at least its `min_progress_m` of "
               "progress along the ego's road (common/scenario.py). \"No evasion\" drives straight at 1 m/s: it "
               "shows how many trials are real conflicts. \"Full throttle\" drives straight at the agent's "
@@ -231,7 +249,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
             s = r.summary if r else None
             cells.append((s.success_rate if s else None, tuple(s.ci95) if s and s.ci95 else None,
                           paper[k] if paper else None))
-        rows.append((CONTROLLERS[n].label, cells))
+        rows.append((_label(n), cells))
     bars = plot_success_bars(rows, [SHORT[s] for s in SCENARIOS], img / "results-table1.png",
                              title=f"Success rate, {trials} sim trials per cell (95 % CI) vs paper (10 hardware trials)")
     lines += [f"![success rates]({bars.relative_to(doc.parent)})", ""]
@@ -252,7 +270,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
             if r is None:
                 continue
             s = r.summary
-            lines.append(f"| {CONTROLLERS[n].label} | {sc} | {s.trials} | {s.successes} | {s.collisions} | "
+            lines.append(f"| {_label(n)} | {sc} | {s.trials} | {s.successes} | {s.collisions} | "
                          f"{f(s.median_min_gap_m)} | {f(s.mean_progress_m)} | {f(s.latency_ms.median, 3)} / "
                          f"{f(s.latency_ms.p99, 3)} | {f(s.compute_ms.median, 3)} / {f(s.compute_ms.p99, 3)} | "
                          f"{sum(t.wall_s for t in r.trials):.0f} |")
@@ -266,12 +284,14 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         panels = [(results[(fig_ctrl, s)].trials[0], f"({'abc'[k]}) {SHORT[s]}") for k, s in enumerate(SCENARIOS)]
         walls = [load_world(load_scenario(s).world).walls for s in SCENARIOS]
         fig = plot_trajectories(panels, walls, img / "results-fig4.png", car_size=(car.length, car.width),
-                                title=f"{CONTROLLERS[fig_ctrl].label}: trial 0 of each scenario (ego green, obstacle red, "
+                                title=f"{_label(fig_ctrl)}: trial 0 of each scenario (ego green, obstacle red, "
                                 "darker = later; dotted = start, solid = end)")
         lines += ["## Trajectories (the paper's Figure 4)", "",
-                  f"{CONTROLLERS[fig_ctrl].label}, the first trial (by seed, not picked) of each scenario.", "",
+                  f"{_label(fig_ctrl)}, the first trial (by seed, not picked) of each scenario.", "",
                   f"![trajectories]({fig.relative_to(doc.parent)})", ""]
-    lines += _conflict_sections(results, names, trials, seeds, suite, img, doc)
+    lines += _conflict_sections(results, names, trials, seeds, {k: v for k, v in (suite or {}).items() if k in names},
+                                img, doc)
+    lines += _safety_section(results, names, trials, suite or {})
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # add --resume to continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "
@@ -284,7 +304,6 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
 def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict, suite: dict | None,
                        img: Path, doc: Path) -> list[str]:
     """docs/results.md: the conflict-timed paper scenarios and the suite's test split, per family."""
-    from racecav.evaluation.harness import CONTROLLERS
     from racecav.evaluation.plots import plot_success_bars
 
     lines: list[str] = []
@@ -306,9 +325,9 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
             cells = [cell_text(r) if r else "not run" for r in rs]
             coll = sum(r.summary.collisions for r in rs if r)
             gaps = [r.summary.median_min_gap_m for r in rs if r and r.summary.median_min_gap_m is not None]
-            lines.append(f"| {CONTROLLERS[n].label} | " + " | ".join(cells) + f" | {coll} | "
+            lines.append(f"| {_label(n)} | " + " | ".join(cells) + f" | {coll} | "
                          + ("/".join(f"{g:.2f}" for g in gaps) or "n/a") + " |")
-            rows.append((CONTROLLERS[n].label, [(r.summary.success_rate, tuple(r.summary.ci95) if r.summary.ci95
+            rows.append((_label(n), [(r.summary.success_rate, tuple(r.summary.ci95) if r.summary.ci95
                                                  else None, None) if r else (None, None, None) for r in rs]))
         chart = plot_success_bars(rows, [f"{SHORT[s]} conflict" for s in SCENARIOS], img / "results-conflict.png",
                                   title=f"Conflict-timed paper scenarios, {trials} sim trials per cell (95 % CI)")
@@ -332,9 +351,9 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
             return f"**{100 * sm['success_rate']:.0f}** [{100 * lo:.0f}, {100 * hi:.0f}]"
         rows = []
         for n, d in suite.items():
-            lines.append(f"| {CONTROLLERS[n].label} | " + " | ".join(txt(d["families"][f]) for f in fams)
+            lines.append(f"| {_label(n)} | " + " | ".join(txt(d["families"][f]) for f in fams)
                          + f" | {txt(d['summary'])} |")
-            rows.append((CONTROLLERS[n].label, [(d["families"][f]["success_rate"],
+            rows.append((_label(n), [(d["families"][f]["success_rate"],
                                                  tuple(d["families"][f]["ci95"]) if d["families"][f]["ci95"] else None,
                                                  None) for f in fams]))
         chart = plot_success_bars(rows, fams, img / "results-suite.png",
@@ -347,6 +366,42 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
             g, prog = sm["median_min_gap_m"], sm["mean_progress_m"]
             g = "n/a" if g is None else f"{g:.2f}"
             prog = "n/a" if prog is None else f"{prog:.2f}"
-            lines.append(f"| {CONTROLLERS[n].label} | {sm['trials']} | {sm['collisions']} | {g} | {prog} |")
+            lines.append(f"| {_label(n)} | {sm['trials']} | {sm['collisions']} | {g} | {prog} |")
         lines.append("")
+    return lines
+
+
+def _safety_section(results: dict, names: list[str], trials: int, suite: dict) -> list[str]:
+    """docs/results.md: every cell run without and with the supervisor (``--safety both``)."""
+    pairs = [n for n in names if any((n + "+safety", sc) in results for sc in (*SCENARIOS, *CONFLICT))
+             or n + "+safety" in suite]
+    if not pairs:
+        return []
+    cols = [sc for sc in (*SCENARIOS, *CONFLICT) if any((n, sc) in results for n in pairs)]
+    head = [SHORT[sc] if sc in SCENARIOS else f"{SHORT[sc.removeprefix('conflict-')]} conflict" for sc in cols]
+    lines = ["## Emergency-brake supervisor on/off", "",
+             "Each cell run without and with `racecav safety` (per-ray iTTC with the lidar-to-bumper offset, "
+             "2-scan debounce, 0.4 s threshold, swept-path gate; its brake is an input of the sim's mux above "
+             "the controller, services/safety, docs/controllers.md), on the same seeds: success % off -> on "
+             "(collisions off -> on). Its scan -> brake latency and its false brakes over 100 laps of the "
+             "empty racetrack and figure eight are `racecav bench safety` (docs/benchmarks.md, section safety).",
+             "", "| controller | " + " | ".join(head) + (" | suite (test split) |" if suite else " |"),
+             "|---|" + "---:|" * (len(cols) + (1 if suite else 0))]
+
+    def cell(off, on) -> str:
+        if off is None or on is None or not off.summary.trials or not on.summary.trials:
+            return "not run"
+        a, b = off.summary, on.summary
+        return (f"{100 * a.success_rate:.0f} -> **{100 * b.success_rate:.0f}** "
+                f"({a.collisions} -> {b.collisions})")
+
+    for n in pairs:
+        row = [cell(results.get((n, sc)), results.get((n + "+safety", sc))) for sc in cols]
+        if suite:
+            off, on = suite.get(n), suite.get(n + "+safety")
+            row.append("not run" if not off or not on else
+                       f"{100 * off['summary']['success_rate']:.0f} -> **{100 * on['summary']['success_rate']:.0f}** "
+                       f"({off['summary']['collisions']} -> {on['summary']['collisions']})")
+        lines.append(f"| {_label(n)} | " + " | ".join(row) + " |")
+    lines += ["", f"{trials} trials per scenario cell; the suite: its test split as in the section above.", ""]
     return lines

@@ -163,6 +163,9 @@ def measure_soak(seconds: float, period_s: float = 0.1) -> dict:
         rig = Rig(stack, Path(tmp))
         ctrl = start_controller(rig.endpoint, period_s)
         stack.callback(procs.stop, ctrl)
+        arrivals: list[float] = []  # the controller's commands as the bus delivers them
+        sub = rig.session.declare_subscriber(keys.topic(CAR, keys.CMD), lambda _s: arrivals.append(time.monotonic()))
+        stack.callback(sub.undeclare)
         t0 = time.monotonic()
         if not _wait(lambda: rig.rpm_after(t0), 20):
             raise RuntimeError("the controller never drove")
@@ -172,8 +175,17 @@ def measure_soak(seconds: float, period_s: float = 0.1) -> dict:
         brakes = [r.t for r in rig.brakes_after(t_start) if r.t < t_end]
         episodes = sum(1 for i, t in enumerate(brakes) if i == 0 or t - brakes[i - 1] > 0.05)
         rpm = [r for r in rig.rpm_after(t_start) if r.t < t_end]
+        gaps = np.diff([t for t in arrivals if t_start <= t < t_end])
+    from racecav.common.config import ActuatorConfig
+
+    timeout = ActuatorConfig().timeout_s
+    # why a brake happened: a command gap longer than the timeout is the controller (or the box)
+    # being late, not the actuator
     return {"seconds": round(t_end - t_start, 1), "rpm_frames": len(rpm), "brake_frames": len(brakes),
-            "brake_episodes": episodes, "load_avg_5min": round(os.getloadavg()[1], 2)}
+            "brake_episodes": episodes, "load_avg_5min": round(os.getloadavg()[1], 2),
+            "cmd_gap_p99_ms": round(float(np.percentile(gaps, 99)) * 1e3, 1) if len(gaps) else None,
+            "cmd_gap_max_ms": round(float(gaps.max()) * 1e3, 1) if len(gaps) else None,
+            "cmd_gaps_over_timeout": int((gaps > timeout).sum()), "timeout_s": timeout}
 
 
 def measure_estop(n: int) -> dict:
@@ -511,6 +523,8 @@ def report(res: dict, command: str) -> str:
          f"median {_ms(kt)} ms, max {_ms(kt, 'max')} ms", "(reference)"],
         ["spurious brakes, live controller at 10 Hz", f"{soak.get('seconds', 0)} s",
          f"{soak.get('brake_episodes', 'n/a')} episodes ({soak.get('brake_frames', 'n/a')} brake frames); "
+         f"command gaps p99 {soak.get('cmd_gap_p99_ms', 'n/a')} ms, max {soak.get('cmd_gap_max_ms', 'n/a')} ms, "
+         f"{soak.get('cmd_gaps_over_timeout', 'n/a')} over the {soak.get('timeout_s', 'n/a')} s timeout; "
          f"load average {soak.get('load_avg_5min', 'n/a')} on {os.cpu_count()} cores", "0"],
         ["e-stop put -> brake", f"{el['n']} e-stops", f"median {_ms(el)} ms, max {_ms(el, 'max')} ms", ""],
         ["e-stop latched across actuator kill -9 + restart", "", str(est.get("latched_after_restart")), "True"],

@@ -210,6 +210,23 @@ def test_table_writes_the_document(tmp_path):
     assert r.returncode == 2 and "nonsense" in r.stderr
 
 
+def test_table_safety_both_runs_every_cell_without_and_with_the_supervisor(tmp_path):
+    doc = tmp_path / "results.md"
+    r = _eval(tmp_path, "--table", "--controllers", "scripted", "--sections", "table1", "--trials", "1",
+              "--safety", "both", "--doc", str(doc), timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    text = doc.read_text()
+    assert "--safety both" in text and "## Emergency-brake supervisor on/off" in text
+    for sc in ("right-to-left", "head-to-head", "left-to-right"):
+        off = json.loads((tmp_path / "table" / f"scripted-{sc}.json").read_text())
+        on = json.loads((tmp_path / "table" / f"scripted-{sc}-safety.json").read_text())
+        assert off["controller"]["name"] == "scripted" and on["controller"]["name"] == "scripted+safety"
+    row = next(line for line in text.splitlines() if line.startswith("| no evasion") and "->" in line)
+    assert row.count("->") == 3 * 2  # success and collisions, off -> on, per scenario
+    r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "scripted", "--safety", "both")
+    assert r.returncode == 2 and "--table" in r.stderr
+
+
 def test_demo_runs_the_shipped_avoid_policy(tmp_path):
     if missing(CONTROLLERS["drl-avoid"]):
         r = subprocess.run(procs.racecav_cmd("demo", "--out-dir", str(tmp_path)), capture_output=True, text=True,
