@@ -322,6 +322,10 @@ class EnvConfig(Section):
     earns as much as driving on."""
     contact_penalty: float = Field(0.0, le=0)
     """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
+    brake_below: float | None = Field(None, gt=-1, le=0)
+    """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
+    the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The
+    shipped policy's metadata carries it, so the policy service brakes the same way."""
 
 
 class TrainConfig(Section):

@@ -144,6 +144,10 @@ class DriveCommand(Message):
     scan_source: Literal["", "sim", "real"] = ""
     """Source of the scan this command answers ("" = not an answer to a scan, e.g. teleop): the
     actuator refuses answers to simulator scans unless ``actuator.sim_scans_drive``."""
+    brake: bool = False
+    """Brake (the VESC's brake current; wheel speed target 0 in the sim) instead of coasting.
+    Set by policies trained with a brake action (a_T below their ``brake_below``); requires
+    throttle 0."""
 
     @model_validator(mode="after")
     def _consistent(self) -> "DriveCommand":
@@ -152,6 +156,8 @@ class DriveCommand(Message):
         if abs(self.throttle - min(max(self.a_throttle, 0.0), 1.0)) > THROTTLE_TOL:
             raise ValueError(f"throttle {self.throttle} contradicts a_throttle {self.a_throttle} "
                              f"(throttle = clip(a_throttle, 0, 1))")
+        if self.brake and self.throttle > THROTTLE_TOL:
+            raise ValueError(f"brake with throttle {self.throttle}: a braking command has throttle 0")
         if self.a_steer * self.steering_angle < 0:
             raise ValueError(f"steering_angle {self.steering_angle} and a_steer {self.a_steer} "
                              f"have opposite signs")

@@ -221,6 +221,17 @@ def throttle_from_action(a_throttle):
     return np.clip(a_throttle, 0.0, 1.0)
 
 
+def brake_from_action(a_throttle, brake_below: float | None):
+    """True where the car brakes: a policy trained with a brake action (``brake_below``, e.g.
+    -0.5) brakes when a_T < brake_below (wheel speed target 0 in the sim, the VESC's brake
+    current on the car); throttle is then 0 as for any a_T <= 0. None: the paper's action, where
+    a_T <= 0 only coasts (the friction model slows the car at ~0.5-1 m/s^2)."""
+    a = np.asarray(a_throttle, dtype=np.float64)
+    if brake_below is None:
+        return np.zeros(a.shape, bool)
+    return a < brake_below
+
+
 def steer_from_action(a_steer, car: CarParams):
     """Front wheel angle (rad) = clip(steer_gain * a_delta, delta_min, delta_max).
 

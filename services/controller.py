@@ -31,7 +31,7 @@ from racecav.common.bus import Service
 from racecav.common.config import Config
 from racecav.common.lidar import LidarSpec
 from racecav.common.messages import INT64_MAX, DriveCommand, Scan
-from racecav.common.vehicle import CarParams, steer_from_action, throttle_from_action
+from racecav.common.vehicle import CarParams, brake_from_action, steer_from_action, throttle_from_action
 
 GEOMETRY_TOL = 1e-4
 """rad: tolerance on angle_min / angle_increment when checking a scan's geometry."""
@@ -50,8 +50,10 @@ def scan_problem(scan: Scan, spec: LidarSpec) -> str | None:
 
 
 def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams, scan: Scan,
-                 seq: int, compute_ns: int) -> DriveCommand:
+                 seq: int, compute_ns: int, brake_below: float | None = None) -> DriveCommand:
     """The DriveCommand answering ``scan`` with the normalised action (a_T, a_delta).
+
+    ``brake_below``: the controller's brake action (policy metadata; None: the paper's action).
 
     Physical values use the shared mapping of :mod:`racecav.common.vehicle`. The stamp stays in
     the scan's clock domain: this host's monotonic clock for real scans, the scan stamp plus the
@@ -65,7 +67,7 @@ def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams,
                         throttle=float(throttle_from_action(a_t)),
                         steering_angle=float(steer_from_action(a_s, car)),
                         scan_seq=scan.seq, scan_stamp_ns=scan.stamp_ns, compute_ns=int(compute_ns),
-                        scan_source=scan.source)
+                        scan_source=scan.source, brake=bool(brake_from_action(a_t, brake_below)))
 
 
 class ControllerService(Service):
@@ -79,6 +81,8 @@ class ControllerService(Service):
 
     answer_in_callback = False
     """True: answer each scan in the subscriber callback (only for answers of a few us)."""
+    brake_below: float | None = None
+    """The controller's brake action: a_T below it brakes (a policy's metadata); None: never."""
 
     def __init__(self, cfg: Config, name: str, car: CarParams, max_scan_age_s: float):
         super().__init__(cfg, name)
@@ -146,7 +150,7 @@ class ControllerService(Service):
             return
         self.last_compute_ns = compute
         self.pub.put(make_command(self.name, action[0], action[1], self.car_params, scan,
-                                  self.counts["answered"], compute))
+                                  self.counts["answered"], compute, self.brake_below))
         self.counts["answered"] += 1
 
     def info(self) -> dict[str, Any]:

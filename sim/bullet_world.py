@@ -320,7 +320,7 @@ class BulletWorld:
         self.w[i] = wheel_w / c.speed_scale
 
     # ----------------------------------------------------------------------------- stepping
-    def step(self, actions, schedule=(), physical: bool = False) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
+    def step(self, actions, schedule=(), physical: bool = False, brake=None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
         """Advance one control period with the agent's action (a_T, a_delta).
 
         :param actions: (1, 2) or (2,) normalised actions in [-1, 1], applied from the start.
@@ -329,6 +329,7 @@ class BulletWorld:
             sim service uses it to apply a command after the controller's compute latency.
         :param physical: actions and schedule entries are physical (T, steering angle in rad),
             as a DriveCommand carries them, instead of normalised actions.
+        :param brake: (1,) bool or None (normalised actions): the agent brakes this period.
         :return: obs (1, n_rays), reward inputs (throttle T (1,), steering action clipped to
             [-1, 1] (1,)), collided (1,) bool, info {t, contact_with} (the World contract).
         """
@@ -336,7 +337,7 @@ class BulletWorld:
         if physical:
             apply(*actions)
         else:
-            apply(actions)
+            apply(actions, brake=brake is not None and bool(np.asarray(brake).reshape(-1)[0]))
         self.begin_period()
         dt = self.car.physics_dt
         pending = sorted(((float(t), a) for t, a in schedule), key=lambda e: e[0])

@@ -40,8 +40,9 @@ class World(Protocol):
     def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
         """Reset every world. :return: observations (N, n_rays) float32."""
 
-    def step(self, actions) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
-        """One control period with the agents' normalised actions (N, 2).
+    def step(self, actions, brake=None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
+        """One control period with the agents' normalised actions (N, 2); ``brake`` (N,) bool:
+        those agents brake (wheel speed target 0; common.vehicle.brake_from_action).
 
         :return: observations (N, n_rays); reward inputs (throttle T (N,), steering action
             clipped to [-1, 1] (N,)); collided (N,) bool (this step); info (backend-specific).

@@ -302,10 +302,11 @@ class FastWorld:
         self._scan(np.array([env]))
 
     # ------------------------------------------------------------------ stepping
-    def step(self, actions) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
+    def step(self, actions, brake=None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
         """Advance every world by one control period.
 
         :param actions: (N, 2) agent actions (a_T, a_delta), normalised.
+        :param brake: (N,) bool or None: these agents brake (wheel speed target 0, as PyBullet's).
         :return: obs (N, 170) float32; reward inputs (T (N,), a_delta clipped to [-1, 1] (N,));
             collided (N,) bool (agent touched a wall or a car during the step); info dict with
             ``wall`` / ``car`` contact flags and the number of obstacle respawns this step.
@@ -315,6 +316,8 @@ class FastWorld:
             self.bad_actions += int((~np.isfinite(a)).any(axis=1).sum())
             a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=-1.0)
         self.actions[:, 0] = a
+        if brake is not None:
+            brake = np.asarray(brake, bool).reshape(self.n_envs)
         if self.actors is not None:
             self.actors.control(self.agent_state())
         elif self.n_cars > 1:
@@ -331,6 +334,8 @@ class FastWorld:
                 self.actors.advance(self.dt)
                 self._actors_to_cars()
             self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
+            if brake is not None:
+                self.w[brake, 0] = 0.0
             self.delta_cmd = vehicle_mod.steer_rate_limit(self.delta_cmd, target, self.dt, car)
             K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
                         self.delta_cmd, self.w, self.speed_scale, dynamic, car.wheel_radius,

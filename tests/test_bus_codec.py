@@ -165,6 +165,8 @@ def _cmd(**kw) -> dict:
     ("scan_stamp_ns", 2**64 - 1),
     ("source", ""),
     ("source", b"policy"),
+    ("brake", True),            # braking with throttle 0.5
+    ("brake", 1),
 ])
 def test_command_inconsistent_or_coerced_rejected(field, value):
     d = _cmd()
@@ -179,6 +181,10 @@ def test_command_consistent_accepted():
         out = decode(msgpack.packb(_cmd(a_throttle=a_t, throttle=t)), DriveCommand)
         assert out.throttle == t
     assert decode(msgpack.packb(_cmd(a_steer=0.0, steering_angle=0.0)), DriveCommand).a_steer == 0.0
+    assert decode(msgpack.packb(_cmd(a_throttle=-0.9, throttle=0.0, brake=True)), DriveCommand).brake
+    old = _cmd()  # a producer that predates the field: not braking
+    del old["brake"]
+    assert decode(msgpack.packb(old), DriveCommand).brake is False
 
 
 @settings(max_examples=300, deadline=None)

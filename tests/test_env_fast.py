@@ -45,6 +45,29 @@ def test_options_are_validated():
         OvertakeEnv(backend="mujoco")
 
 
+def test_brake_action_option():
+    """brake_below: a_T below it brakes (both env classes); the paper's action only coasts."""
+    with pytest.raises(ValueError, match="brake_below"):
+        OvertakeEnv(brake_below=0.5)
+    ends = []
+    for bb in (None, -0.5):
+        env = FastVecEnv(n_envs=2, n_obstacles=0, brake_below=bb, seed=0)
+        env.reset()
+        for _ in range(15):
+            env.step(np.tile([1.0, 0.0], (2, 1)))
+        for _ in range(5):
+            env.step(np.tile([-1.0, 0.0], (2, 1)))
+        ends.append(env.world.agent_state()[:, 3])
+    assert ends[0].max() > 0.8 and np.all(ends[1] < 0.2), ends  # coasting keeps most of its speed
+    env = OvertakeEnv(backend="fast", n_obstacles=0, brake_below=-0.5)
+    env.reset(seed=1)
+    for _ in range(15):
+        env.step(np.array([1.0, 0.0]))
+    for _ in range(5):
+        _obs, r, *_ = env.step(np.array([-0.8, 0.0]))
+    assert env.world.agent_state()[0, 3] < 0.2 and r == 0.0
+
+
 # --------------------------------------------------------------------------- reward
 def test_reward_cases():
     # 5 T^2 with T = clip(a_T, 0, 1)

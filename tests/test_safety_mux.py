@@ -127,6 +127,28 @@ def test_safety_brake_frames():
     assert not mux.decide(0.21).brake and m.decision_frames(mux.decide(0.21))[0] == m.motor_frame(0.5)
 
 
+def test_a_braking_command_brakes_the_motor():
+    """A policy trained with a brake action (DriveCommand.brake): brake current, its steering."""
+    from racecav.common.vehicle import load_car
+    from racecav.services.controller import make_command
+    from racecav.common.messages import Scan
+
+    m = Mapping(ACFG, load_car("slash"))
+    mux = CommandMux.from_config(ACFG)
+    scan = Scan(stamp_ns=10, seq=3, angle_min=0.0, angle_max=0.0, angle_increment=0.01, ranges=[1.0],
+                range_min=0.1, range_max=16.0, source="sim")
+    for a_t, brakes in ((-0.9, True), (-0.3, False), (0.4, False)):
+        c = make_command("policy", a_t, 0.2, load_car("slash"), scan, 0, 0, brake_below=-0.5)
+        assert c.brake is brakes and (c.throttle == 0.0 if a_t <= 0 else c.throttle == 0.4)
+        assert mux.offer(c, keys.CMD, 0.0)
+        d = mux.decide(0.0)
+        assert d.reason == "controller" and d.brake is brakes
+        motor = m.decision_frames(d)[0]
+        assert (motor == vp.set_current_brake(ACFG.brake_current_a)) is brakes
+    # without a brake action (the paper's policies) a_T -1 coasts
+    assert not make_command("policy", -1.0, 0.0, load_car("slash"), scan, 0, 0).brake
+
+
 def test_forget_drops_inputs_but_not_the_estop():
     mux = CommandMux.from_config(ACFG)
     give(mux, keys.SAFETY, 0.0)

@@ -48,6 +48,16 @@ def test_both_backends_keep_the_contract(kind):
             w.set_state(0, 0, x=float(x0[0]), y=float(x0[1]), yaw=float(x0[2]), v=0.5)
             assert np.allclose(w.agent_state()[0, :3], x0[:3], atol=1e-6)
             assert abs(w.agent_state()[0, 3] - 0.5) < 0.05
+            # the brake action: from full speed, braking stops the car where coasting does not
+            ends = []
+            for brake in (False, True):
+                w.set_state(0, 0, x=float(x0[0]), y=float(x0[1]), yaw=float(x0[2]), v=0.0)
+                for _ in range(12):
+                    w.step(np.tile([1.0, 0.0], (n, 1)))
+                for _ in range(5):
+                    w.step(np.tile([-1.0, 0.0], (n, 1)), brake=np.full(n, brake))
+                ends.append(w.agent_state()[0, 3])
+            assert ends[0] > 1.0 and ends[1] < 0.2, ends
         finally:
             close = getattr(w, "close", None)
             if close:

@@ -21,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 
 from racecav.common.config import EnvConfig
+from racecav.common.vehicle import brake_from_action
 
 REVERSAL_PENALTY = -2.0
 THROTTLE_REWARD_GAIN = 5.0
@@ -170,6 +171,7 @@ class OvertakeEnv(gym.Env):
     :param time_limit: episode time limit in seconds (truncation; scenario episodes: their duration).
     :param scenarios: scenario episodes instead of traffic (each reset draws a file).
     :param obs_stack: scans per observation, newest first.
+    :param brake_below: the brake action (a_T below it brakes); None: the paper's action.
     :param config: an EnvConfig to start from (keyword arguments override it).
     """
 
@@ -180,7 +182,7 @@ class OvertakeEnv(gym.Env):
                  time_limit: float | None = None, world: str | None = None, car: str | None = None,
                  agent_speed_scale: float | None = None, scenarios: str | None = None,
                  obs_stack: int | None = None, contact_penalty: float | None = None,
-                 config: EnvConfig | None = None):
+                 brake_below: float | None = None, config: EnvConfig | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend=backend, heading=heading,
                                      n_obstacles=n_obstacles,
@@ -188,7 +190,7 @@ class OvertakeEnv(gym.Env):
                                      control_period_s=control_period, time_limit_s=time_limit,
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
                                      scenarios=scenarios, obs_stack=obs_stack, contact_penalty=contact_penalty,
-                                     scenario_share=1.0 if scenarios else None)
+                                     scenario_share=1.0 if scenarios else None, brake_below=brake_below)
         st = self.settings
         if st.scenarios and st.backend == "bullet":
             from racecav.common.scenario import load_scenario, scenario_files
@@ -236,7 +238,8 @@ class OvertakeEnv(gym.Env):
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(1, 2)
         p0 = self._progress()
-        obs, (throttle, a_delta), collided, info = self.world.step(a)
+        obs, (throttle, a_delta), collided, info = self.world.step(
+            a, brake=brake_from_action(a[:, 0], self.settings.brake_below))
         r = (float(reward(throttle, self._a_prev, a_delta)[0]) + self.settings.contact_penalty * bool(collided[0])
              + self.settings.progress_reward * (self._progress() - p0))
         self._a_prev = float(a_delta[0])

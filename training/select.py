@@ -71,7 +71,7 @@ def run(args, cfg) -> int:
 
 
 # ----------------------------------------------------------------------------------- evaluation
-def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1):
+def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: float | None = None):
     """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present)."""
     import pickle
 
@@ -87,7 +87,7 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1):
             norm = pickle.load(f)
         arrays.update(obs_mean=norm.obs_rms.mean, obs_var=norm.obs_rms.var,
                       obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
-    return NumpyPolicy(arrays, {"obs_stack": obs_stack})
+    return NumpyPolicy(arrays, {"obs_stack": obs_stack, "brake_below": brake_below})
 
 
 def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
@@ -162,6 +162,7 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
     from racecav.sim.bullet_world import BulletWorld
 
     from racecav.common.policy import ScanStack
+    from racecav.common.vehicle import brake_from_action
 
     bw = BulletWorld(scenario)
     dur = bw.scenario.duration_s
@@ -175,7 +176,8 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
             collided = False
             path = []
             while bw.t < dur - 1e-9 and not collided:
-                obs, _, col, _ = bw.step(policy(stack(obs[0])))
+                a = policy(stack(obs[0]))
+                obs, _, col, _ = bw.step(a, brake=brake_from_action(a[:1], getattr(policy, "brake_below", None)))
                 collided = bool(col[0])
                 if k < record:
                     path.append([*bw.agent_state()[0, :2], *[c for o in bw.obstacles()[0, :, :2] for c in o]])
@@ -235,7 +237,7 @@ def select(args, cfg) -> int:
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
             rows.append(prev)
             continue
-        pol = policy_from_checkpoint(ck, tc.env.obs_stack)
+        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below)
         row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, tc.env, args.episodes)}
         if not args.no_intersection:
             rates = []
@@ -250,7 +252,10 @@ def select(args, cfg) -> int:
                 crates = [eval_scenario(pol, sc, args.trials, SELECT_SEED)["success"] for sc in CONFLICT_SCENARIOS]
                 row.update({f"{sc}_success": r for sc, r in zip(CONFLICT_SCENARIOS, crates)})
                 row["conflict_success"] = sum(crates) / len(crates)
-                suite = eval_suite_fast(pol, tc.env, args.suite_episodes)
+                # the first scenario source is the conflict suite; any others (e.g. clock-timed
+                # traffic, which a non-evading car may pass) are only training mix
+                sel_env = tc.env.model_copy(update={"scenarios": tc.env.scenarios.split(",")[0].strip()})
+                suite = eval_suite_fast(pol, sel_env, args.suite_episodes)
                 row.update(suite)
                 fields += [k for k in suite if k not in fields]
                 row["score"] = (row["suite_success"] + row["conflict_success"] + row["intersection_success"]) / 3
@@ -363,7 +368,9 @@ def ship(args, cfg) -> int:
             "observation": ("sanitised lidar ranges (common/lidar.sanitize), 170, m"
                             + (f"; the newest {tc.env.obs_stack} scans, newest first"
                                if tc.env.obs_stack > 1 else "")),
-            "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"}
+            "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"
+                      + (f"; a_T < {tc.env.brake_below} brakes" if tc.env.brake_below is not None else ""),
+            "brake_below": tc.env.brake_below}
     dst = MODELS_DIR / f"{args.name}.npz"
     export_policy(model, dst, meta, obs_rms=norm.obs_rms if norm else None,
                   clip_obs=norm.clip_obs if norm else 10.0, epsilon=norm.epsilon if norm else 1e-8)

@@ -46,7 +46,7 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty",
-             "progress_reward": "--progress-reward"}
+             "progress_reward": "--progress-reward", "brake_below": "--brake-below"}
 """EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",

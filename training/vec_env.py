@@ -22,6 +22,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from racecav.common.config import EnvConfig
+from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
 
 
@@ -42,7 +43,8 @@ class FastVecEnv(VecEnv):
                  agent_speed_scale: float | None = None, parallel: bool | None = None,
                  scenarios: str | None = None, scenario_share: float | None = None,
                  contact_penalty: float | None = None, obs_stack: int | None = None,
-                 progress_reward: float | None = None, seed: int | None = None):
+                 progress_reward: float | None = None, brake_below: float | None = None,
+                 seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -51,7 +53,7 @@ class FastVecEnv(VecEnv):
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
                                      n_envs=n_envs, parallel=parallel, scenarios=scenarios,
                                      scenario_share=scenario_share, contact_penalty=contact_penalty,
-                                     obs_stack=obs_stack, progress_reward=progress_reward)
+                                     obs_stack=obs_stack, progress_reward=progress_reward, brake_below=brake_below)
         # the batch: traffic worlds first, then one scenario world per scenario world geometry
         self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
         self.world = self.worlds[0]
@@ -101,7 +103,8 @@ class FastVecEnv(VecEnv):
         obs_parts, thr, a_d, col, trunc, succ, dprog = [], [], [], [], [], [], []
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
-            o, (t, d), c, _info = w.step(self._actions[sl])
+            a = self._actions[sl]
+            o, (t, d), c, _info = w.step(a, brake=brake_from_action(a[:, 0], self.settings.brake_below))
             dprog.append(w.progress() - p0)
             obs_parts.append(o)
             thr.append(t)

@@ -92,7 +92,7 @@ class Mapping:
         """Frames for a mux decision: drive, safety brake, or neutral."""
         if d.cmd is None:
             return self.neutral_frames()
-        if d.reason == "safety":
+        if d.brake:  # the safety supervisor's brake, or a controller's braking command
             return self.brake_frames(d.cmd.steering_angle)
         return self.drive_frames(d.cmd)
 
@@ -119,8 +119,9 @@ class Decision:
 
     @property
     def brake(self) -> bool:
-        """True when the motor must brake: neutral, or the safety supervisor's brake."""
-        return self.cmd is None or self.reason == "safety"
+        """True when the motor must brake: neutral, the safety supervisor's brake, or a command
+        that brakes (DriveCommand.brake: a policy trained with a brake action)."""
+        return self.cmd is None or self.reason == "safety" or self.cmd.brake
 
 
 @dataclass(frozen=True)

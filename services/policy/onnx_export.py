@@ -96,6 +96,8 @@ def sidecar(policy: NumpyPolicy, spec: LidarSpec, car, source: str) -> dict:
                    "meaning": "deterministic Gaussian mean of the PPO actor, clipped to [-1, 1]"},
         "to_physical": {"throttle": "T = clip(a_throttle, 0, 1)",
                         "steering_angle_rad": f"clip({car.steer_gain} * a_steer, {car.delta_min}, {car.delta_max}), + left",
+                        "brake": (f"brake (VESC brake current) when a_throttle < {policy.brake_below}"
+                                  if policy.brake_below is not None else "never (a_throttle <= 0 coasts)"),
                         "car": car.name},
         "network": {"layers": [int(policy.obs_dim), int(policy.w0.shape[1]), int(policy.w1.shape[1]),
                                int(policy.act_dim)], "activation": "tanh", "n_params": policy.n_params},

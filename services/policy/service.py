@@ -56,6 +56,8 @@ class PolicyService(ControllerService):
         # a stacked policy (metadata obs_stack > 1) sees the newest k scans, newest first, as in
         # training; a lost scan or a new episode (a stamp gap) restarts the stack
         self.stack = ScanStack(k)
+        # trained with a brake action (EnvConfig.brake_below): a_T below it brakes, as in training
+        self.brake_below = self.policy.brake_below
         self._last = (None, 0)  # (seq, stamp_ns) of the previous scan answered
         self.backend = pcfg.backend
         if self.backend == "fused":
@@ -86,7 +88,8 @@ class PolicyService(ControllerService):
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "model": self.model_ref, "backend": self.backend, "normalize": self.policy.normalize,
-                "n_params": self.policy.n_params, "obs_stack": self.policy.obs_stack}
+                "n_params": self.policy.n_params, "obs_stack": self.policy.obs_stack,
+                "brake_below": self.policy.brake_below}
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:

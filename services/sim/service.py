@@ -387,7 +387,7 @@ class SimService(Service):
         """(throttle, steering angle, brake) for a mux decision."""
         if d.cmd is None:
             return 0.0, 0.0, True
-        if d.brake:  # the safety supervisor's brake, with its steering angle
+        if d.brake:  # the safety supervisor's brake or a braking command, with its steering angle
             return 0.0, d.cmd.steering_angle, True
         return d.cmd.throttle, d.cmd.steering_angle, False
 
