@@ -627,8 +627,11 @@ nice -n 10 .venv/bin/pytest tests/test_bus_codec.py tests/test_hardening_*.py -q
   increment, maps for arrays, strings and booleans for numbers, contradicting DriveCommands)
   is a DecodeError; hypothesis over every field;
 - test_hardening_fuzz: hypothesis payloads on every input key and bad payloads on every sim
-  query through a real router with actuator, policy, baseline, safety and sim running: alive,
-  counted, `errors` 0, RSS flat, every service still answers valid input;
+  query through a real router with actuator, policy, baseline, safety, sim, the ROS 2 mirror
+  (incl. hostile /drive CDR with and without the rmw_zenoh attachment), the recorder (bad
+  `rotate` queries refused; its run files read back complete, every payload in them) and the
+  Foxglove view running: alive, counted, `errors` 0, RSS flat, every service still answers
+  valid input;
 - test_hardening_failsafe: e-stop across kill -9 and restart, exact `clear`, e-stop while the
   actuator is down, kill -9 of the controller -> brake (median <= 50 ms over 3 kills), the
   simulator's same rule, a missing serial port in `last_error`, sim-scan answers refused;

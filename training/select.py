@@ -622,7 +622,7 @@ def record_observations(path: Path, seed: int = 7) -> Path:
     return path
 
 
-ABLATION = ("avoid-paper", "avoid-progress", "avoid-progress-stack2")
+ABLATION = ("avoid-paper", "avoid-progress", "avoid-progress-stack2", "avoid-traffic", "avoid-brake")
 """The avoidance runs in ablation order: each adds one change to the row before."""
 
 
@@ -645,8 +645,11 @@ def _ablation_markdown() -> str:
         best["_last_score"] = max(evals, key=lambda r: int(r["timesteps"]))["score"]
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in ("progress_reward", "obs_stack",
-                                                                         "contact_penalty", "scenario_share")
+                                                                         "contact_penalty", "scenarios",
+                                                                         "scenario_share", "brake_below")
             if getattr(prev.env, k) != getattr(tc.env, k)) or "-"
+        if prev is not None and tc.init_from != prev.init_from:
+            change += f"; starts from {Path(tc.init_from).name if tc.init_from else 'scratch'}"
         rows.append((run, change, best, tc))
         prev = tc
     if not rows:

@@ -9,8 +9,10 @@ The file layout is :mod:`racecav.services.record.mcapfile`.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import queue
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -61,9 +63,11 @@ class Recorder(Service):
         super().__init__(cfg, name)
         from racecav.services.record.mcapfile import RunWriter
 
-        self.exprs, self.duration_s = exprs, duration_s
+        self.exprs, self.duration_s, self._ros = exprs, duration_s, ros
         self.writer = RunWriter(output, self.car, ros=ros, car_params=cfg.ros2.car,
                                 metadata={"config_digest": cfg.digest(), "keys": " ".join(exprs)})
+        self._open_files = {os.path.realpath(output)}  # the file being written and those a rotate queued
+        self._rotate_lock = threading.Lock()
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._t0 = time.monotonic()
         self.linger_s = 0.3
@@ -78,14 +82,33 @@ class Recorder(Service):
     def _on_rotate(self, payload: bytes | None) -> dict[str, Any]:
         """racecav/<car>/<name>/rotate {"path": P}: close the file, go on in P (one file per
         trial: ``racecav eval --record``). Queued behind the samples already received, so every
-        sample that arrives after the reply goes to P."""
-        import json
-
-        path = json.loads(payload or b"{}").get("path")
-        if not isinstance(path, str) or not path:
+        sample that arrives after the reply goes to P. P is opened here: a path that cannot be
+        written (a folder, a file as a parent, a name too long) or a file still being written is
+        refused with an error reply, and recording goes on in the current file."""
+        try:
+            data = json.loads(payload) if payload else {}
+        except (ValueError, RecursionError) as e:  # not UTF-8, not JSON, nested beyond the parser
+            raise ValueError(f"rotate: payload is not JSON ({e})") from None
+        path = data.get("path") if isinstance(data, dict) else None
+        if not isinstance(path, str) or not path or "\0" in path:
             raise ValueError('rotate: payload must be {"path": "new.mcap"}')
-        self._q.put((ROTATE, path, 0))
+        real = os.path.realpath(path)
+        with self._rotate_lock:
+            if real in self._open_files:
+                raise ValueError(f"rotate: {path} is being written")
+            try:
+                writer = self._new_writer(path)
+            except OSError as e:
+                raise ValueError(f"rotate: cannot write {path}: {e}") from None
+            self._open_files.add(real)
+        self._q.put((ROTATE, writer, 0))
         return {"file": path}
+
+    def _new_writer(self, path: str):
+        from racecav.services.record.mcapfile import RunWriter
+
+        return RunWriter(path, self.car, ros=self._ros, car_params=self.cfg.ros2.car,
+                         metadata={"config_digest": self._config_digest, "keys": " ".join(self.exprs)})
 
     def _on_sample(self, sample) -> None:
         # Zenoh's thread: no decoding, no file I/O, only a non-blocking append.
@@ -115,14 +138,14 @@ class Recorder(Service):
         except queue.Empty:
             return None
 
-    def _rotate(self, path: str) -> None:
-        from racecav.services.record.mcapfile import RunWriter
-
-        old = self.writer
-        old.close()
-        self.writer = RunWriter(path, self.car, ros=old._conv is not None, car_params=self.cfg.ros2.car,
-                                metadata={"config_digest": self._config_digest, "keys": " ".join(self.exprs)})
-        self.log.info("closed %s, recording to %s", old.path, path)
+    def _rotate(self, writer) -> None:
+        old, self.writer = self.writer, writer  # opened by the query: switching cannot fail
+        try:
+            old.close()
+        finally:
+            with self._rotate_lock:
+                self._open_files.discard(os.path.realpath(old.path))
+        self.log.info("closed %s, recording to %s", old.path, writer.path)
 
     def step(self) -> None:
         # Batches every 50 ms instead of waking on each sample: one wake-up per batch leaves the
