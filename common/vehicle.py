@@ -67,6 +67,9 @@ class BicycleParams(_Frozen):
     world axes (period 90 deg); 0 = isotropic."""
     heading_s4: float = 0.0
     """See heading_c4."""
+    brake_decel: float = Field(9.7, gt=0)
+    """Deceleration (m/s^2) of a braking car (wheel speed target 0). PyBullet's velocity motor
+    locks the wheels and they skid at about mu g: 2.0 -> 0 m/s in 0.2 s, 0.18 m, heading held."""
 
 
 class CarParams(_Frozen):

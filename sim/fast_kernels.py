@@ -435,7 +435,7 @@ def contacts(x, y, yaw, active, walls, wall_box, corners, hx, hy, wall_r, check,
 
 
 @njit(cache=True, fastmath=True)
-def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, wheel_radius,
+def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, skid, wheel_radius,
               wheelbase, mass, g, lf, lr, iz, mu, c_sf, c_sr, steer_tau, speed_tau, scrub,
               scrub_lat, v_kin, dt, c_speed_inv=0.0, heading_c4=0.0, heading_s4=0.0):
     """One physics substep of the single-track model for every car.
@@ -455,6 +455,9 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, w
     angle the tyres see is ``delta * (1 + heading_c4 cos 4psi + heading_s4 sin 4psi)`` with ``psi``
     the yaw (mirrored, ``-yaw``, in right turns): PyBullet's grip depends on the heading relative
     to the world axes (period 90 deg), so its turning circle breathes with the heading.
+
+    ``skid`` (N, C) bool: braking cars, whose locked wheels slide straight (PyBullet: no lateral
+    grip, the steering angle has no effect until the brake is released).
     """
     N, C = x.shape
     L = lf + lr
@@ -467,7 +470,7 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, w
             if not active[n, c]:
                 continue
             delta[n, c] += (delta_cmd[n, c] - delta[n, c]) * ks
-            d = delta[n, c]
+            d = 0.0 if skid[n, c] else delta[n, c]
             if aniso:  # cos/sin of 4 yaw by double angles
                 c1 = math.cos(yaw[n, c])
                 s1 = math.sin(yaw[n, c])

@@ -149,6 +149,7 @@ class FastWorld:
         f = np.zeros
         self.x, self.y, self.yaw = f((N, C)), f((N, C)), f((N, C))
         self.v, self.w, self.delta, self.delta_cmd = f((N, C)), f((N, C)), f((N, C)), f((N, C))
+        self.skid = np.zeros((N, C), bool)  # braking agents (their wheels slide)
         self.beta, self.r = f((N, C)), f((N, C))  # slip angle and yaw rate of the single-track model
         self.active = np.ones((N, C), dtype=bool)
         self.cl_idx = np.zeros((N, C), dtype=np.int64)
@@ -196,6 +197,7 @@ class FastWorld:
         self.lf, self.lr, self.iz, self.mu = float(b.lf), float(b.lr), float(b.iz), float(b.mu)
         self.c_sf, self.c_sr = float(b.c_sf), float(b.c_sr)
         self.steer_tau, self.speed_tau = float(b.steer_tau), float(b.speed_tau)
+        self.brake_decel = float(b.brake_decel)
         self.scrub = float(getattr(b, "scrub", 0.0))
         self.scrub_lat = float(getattr(b, "scrub_lat", 0.0))
         self.c_speed_inv, self.heading_c4, self.heading_s4 = b.c_speed_inv, b.heading_c4, b.heading_s4
@@ -318,6 +320,7 @@ class FastWorld:
         self.actions[:, 0] = a
         if brake is not None:
             brake = np.asarray(brake, bool).reshape(self.n_envs)
+        self.skid[:, 0] = False if brake is None else brake
         if self.actors is not None:
             self.actors.control(self.agent_state())
         elif self.n_cars > 1:
@@ -334,11 +337,12 @@ class FastWorld:
                 self.actors.advance(self.dt)
                 self._actors_to_cars()
             self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
-            if brake is not None:
-                self.w[brake, 0] = 0.0
+            if brake is not None:  # the wheels' target follows the skidding body down to 0
+                scale = car.wheel_radius * self.speed_scale[brake, 0]
+                self.w[brake, 0] = np.maximum(self.v[brake, 0] - self.brake_decel * self.dt, 0.0) / scale
             self.delta_cmd = vehicle_mod.steer_rate_limit(self.delta_cmd, target, self.dt, car)
             K.integrate(self.x, self.y, self.yaw, self.v, self.beta, self.r, self.delta,
-                        self.delta_cmd, self.w, self.speed_scale, dynamic, car.wheel_radius,
+                        self.delta_cmd, self.w, self.speed_scale, dynamic, self.skid, car.wheel_radius,
                         car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
                         self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub,
                         self.scrub_lat, V_KIN, self.dt, self.c_speed_inv, self.heading_c4,

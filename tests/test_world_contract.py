@@ -62,3 +62,27 @@ def test_both_backends_keep_the_contract(kind):
             close = getattr(w, "close", None)
             if close:
                 close()
+
+
+def test_braking_is_the_same_in_both_backends():
+    """The brake (wheel speed target 0): PyBullet's locked wheels skid at about mu g with the
+    heading held whatever the steering; the fast world's brake_decel and skid reproduce it."""
+    sc = load_scenario("conflict-right-to-left")
+    ends = {}
+    for w in (BulletWorld(sc), FastWorld(n_envs=1, scenarios=[sc], seed=1)):
+        try:
+            w.seed(0)
+            w.reset()
+            for _ in range(12):  # ~2 m/s
+                w.step(np.array([[1.0, 0.0]]))
+            s0 = w.agent_state()[0].copy()
+            for _ in range(4):  # brake, steering fully left
+                w.step(np.array([[-1.0, 1.0]]), brake=np.array([True]))
+            s = w.agent_state()[0]
+            ends[type(w).__name__] = (float(np.hypot(*(s[:2] - s0[:2]))), float(s[2] - s0[2]), float(s[3]), float(s0[3]))
+        finally:
+            getattr(w, "close", lambda: None)()
+    (db, yb, vb, v0b), (df, yf, vf, v0f) = ends["BulletWorld"], ends["FastWorld"]
+    assert v0b > 1.8 and v0f > 1.8 and abs(vb) < 0.05 and abs(vf) < 0.05, ends  # stopped
+    assert 0.1 < db < 0.3 and abs(df - db) < 0.05, ends  # stopping distance
+    assert abs(yb) < 0.02 and abs(yf) < 0.02, ends  # the steering does not turn a skidding car

@@ -138,8 +138,8 @@ class BulletScenarios:
         self.time_limit[0] = sc.duration_s
         return self.bw.reset(seed=int(self.rng.integers(2**31 - 1)), options=options)
 
-    def step(self, actions):
-        return self.bw.step(np.asarray(actions, dtype=np.float64).reshape(1, 2))
+    def step(self, actions, brake=None):
+        return self.bw.step(np.asarray(actions, dtype=np.float64).reshape(1, 2), brake=brake)
 
     @property
     def time(self) -> np.ndarray:
