@@ -660,7 +660,9 @@ def _ablation_markdown() -> str:
     L = ["", "## The avoid policy: training on conflicts, one change per row", "",
          "Each row is a run of `racecav train overtake --heading reversed --world figure8 --n-obstacles 8 "
          "--driver centerline --preset fast --ent-coef 0.005 --scenarios conflicts --scenario-share 0.6 "
-         "--init-from common/data/policies/reversed.zip --init-std 0.4` plus the row's change; its "
+         "--init-from common/data/policies/reversed.zip --init-std 0.4` plus the changes of the rows above and "
+         "its own (the change column, relative to the row above; rows 4-5 start from row 3's shipped "
+         "checkpoint with `--init-std 0.3`, the avoid policy shipped then); its "
          "checkpoints are scored by `racecav train select --trials 100` on the selection split only: the "
          "suite's train split with selection seeds in the fast world (suite columns, "
          f"{rows[0][2].get('suite_episodes')} episodes) and, in PyBullet in-process with selection seeds "
@@ -684,8 +686,23 @@ def _ablation_markdown() -> str:
           "removes the exploit. Judged by the best checkpoints alone the progress reward did not gain "
           "(second row below the first); it stays because the first row's training collapses into the "
           "exploit (its last checkpoint's score) and because the scan stack, which gains most, was trained "
-          "on top of it. Budgets differ (5-10 M samples: the runs shared two cores with the rest of the "
-          "session's work), and one run per row is one seed: differences under ~5 points are noise.", ""]
+          "on top of it. Row 4 (avoid-traffic) mixes the train split of a clock-timed traffic suite into the "
+          "conflicts (`racecav suite generate --name traffic --n 40 --n-train 600 --seed 1`, "
+          "common/data/suites/traffic.toml: crossing, head-on and turning cars at constant speed, starting "
+          "after 0-4 s, which may or may not conflict; `--scenarios conflicts,traffic --scenario-share 0.7`), "
+          "starting from row 3's shipped checkpoint: a policy trained on synchronised conflicts alone evades "
+          "every car it sees, and this row gains mostly on the paper-timed scenarios, where the car passes "
+          "if the ego keeps going. Row 5 (avoid-brake) adds a brake action (`--brake-below -0.5`: a_T < -0.5 "
+          "brakes, the VESC's brake current on the car): it learned to stop in front of conflicts, which "
+          "loses the head-on and stopped-car families (an oncoming car released from its synchronisation "
+          "still arrives; a stopped car never leaves), and its score falls as it trains: rejected. (A first "
+          "run of row 5 trained on a fast world whose brake stopped the car within one control period, "
+          "while PyBullet's locked wheels need 0.2 s and 0.18 m from 2 m/s; its fast-world gains did not "
+          "carry over to PyBullet. The fast world now brakes at 9.7 m/s^2 and skids straight like PyBullet, "
+          "tests/test_world_contract.py, and row 5 is the rerun.) Budgets differ (5-23 M samples: the runs "
+          "shared two cores with the rest of the sessions' work), and one run per row is one seed: "
+          "differences under ~5 points are noise; single checkpoints of one run swing by 5-10 points "
+          "(row 4: 72-82 between 16 M and 23 M samples).", ""]
     for run, *_ in rows:
         if (COMMITTED / run / "eval.png").is_file():
             img = REPO / "docs" / "img" / f"training_eval_{run}.png"
