@@ -55,14 +55,14 @@ class NumpyPolicy:
         self.obs_dim, self.act_dim = self.w0.shape[0], self.w2.shape[1]
         self.metadata = dict(metadata or {})
         self.obs_stack = int(self.metadata.get("obs_stack", 1))
+        """Scans per observation, newest first (1: the paper's single scan)."""
+        if self.obs_stack < 1 or self.obs_dim % self.obs_stack:
+            raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the input size {self.obs_dim}")
         bb = self.metadata.get("brake_below")
         self.brake_below = None if bb is None else float(bb)
         """a_T below this brakes (a policy trained with EnvConfig.brake_below); None: never."""
         if self.brake_below is not None and not -1.0 < self.brake_below <= 0.0:
             raise ValueError(f"policy metadata: brake_below {bb} is not in (-1, 0]")
-        """Scans per observation, newest first (1: the paper's single scan)."""
-        if self.obs_stack < 1 or self.obs_dim % self.obs_stack:
-            raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the input size {self.obs_dim}")
         self.normalize = "obs_mean" in arrays
         if self.normalize:
             mean = np.asarray(arrays["obs_mean"], np.float64)
