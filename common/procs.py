@@ -73,6 +73,10 @@ def install_cleanup() -> None:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _raise_exit)
+        # a command started in the background of a non-interactive shell inherits SIGINT ignored:
+        # an explicit `kill -INT` must still stop it (and what it started)
+        if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
     atexit.register(stop_all)
 
 

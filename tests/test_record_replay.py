@@ -193,15 +193,15 @@ def test_eval_record_writes_one_file_per_trial(tmp_path):
     assert len(trials) == 2
     for t in trials:
         _car, scans, recorded = load_run(rec_dir / f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap")
-        # the trial's scans, and the commands answering them. The recorder switches files on a
-        # query that races the bus by a few samples at each end of a trial (the previous trial's
-        # last commands, the next reset's first scans: seen 1-2 on fresh clones): slack of 3.
-        # A lockstep sim republishes a scan its controller has not answered yet (a loaded box):
-        # the file holds every sample, so scans are counted by their seq.
+        # the trial's scans (load_run drops republished repeats), and the commands answering
+        # them. The recorder switches files on a query before each trial, so a file also holds
+        # what is on the bus around that switch: samples in flight, and the steps the lockstep sim
+        # and the policy go on with between the trial's end and the next switch (seen: 1-4 on
+        # fresh clones). Slack: 3 samples missing at the start, 10 extra.
         seqs = [s.seq for s in scans]
-        assert t["steps"] - 3 <= len(set(seqs)) <= t["steps"] + 3
+        assert t["steps"] - 3 <= len(seqs) <= t["steps"] + 10
         assert all(min(seqs) - 3 <= seq <= max(seqs) for seq, _stamp in recorded)
-        assert t["commands"] - 3 <= len(recorded) <= t["commands"] + 3
+        assert t["commands"] - 3 <= len(recorded) <= t["commands"] + 10
 
 
 def test_real_sensor_scans_are_restamped(spawn, session, router, tmp_path):
