@@ -104,7 +104,8 @@ class FastVecEnv(VecEnv):
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
             a = self._actions[sl]
-            o, (t, d), c, _info = w.step(a, brake=brake_from_action(a[:, 0], self.settings.brake_below))
+            bb = self.settings.brake_below  # None (the paper's action): no brake mask on the hot path
+            o, (t, d), c, _info = w.step(a, brake=None if bb is None else brake_from_action(a[:, 0], bb))
             dprog.append(w.progress() - p0)
             obs_parts.append(o)
             thr.append(t)
