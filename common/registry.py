@@ -55,6 +55,10 @@ HOLD_SPEED = 1.0
 CONTROLLERS: dict[str, ControllerSpec] = {c.name: c for c in (
     ControllerSpec("drl-avoid", ("policy", "--model", "avoid"), "policy", "racecav.services.policy.service",
                    "avoid", "DRL avoid (trained on conflicts)"),
+    # The ablation's first row (docs/training.md): the paper's observation, action and reward,
+    # trained with the conflict mix; what the paper's design reaches once it has seen conflicts.
+    ControllerSpec("drl-avoid-paper", ("policy", "--model", "avoid-paper"), "policy",
+                   "racecav.services.policy.service", "avoid-paper", "DRL paper design + conflict mix (ablation row 1)"),
     ControllerSpec("drl-reversed", ("policy", "--model", "reversed"), "policy", "racecav.services.policy.service",
                    "reversed", "DRL reversed heading"),
     ControllerSpec("drl-default", ("policy", "--model", "default"), "policy", "racecav.services.policy.service",
@@ -76,5 +80,5 @@ CONTROLLERS: dict[str, ControllerSpec] = {c.name: c for c in (
 )}
 TABLE_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed")
 """The paper's Table 1 rows."""
-DEFAULT_TABLE = ("mpc-apf", "drl-default", "drl-reversed", "drl-avoid", "scripted", "full-throttle", "mpc-apf-fast")
+DEFAULT_TABLE = ("mpc-apf", "drl-default", "drl-reversed", "drl-avoid", "drl-avoid-paper", "scripted", "full-throttle", "mpc-apf-fast")
 """``racecav eval --table`` rows (a policy not shipped yet is left out)."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -275,6 +276,16 @@ def open_suite(name_or_dir: str | Path) -> Suite:
         return Suite(root, json.loads(man.read_text()))
     except json.JSONDecodeError as e:
         raise ValueError(f"suite {man}: invalid JSON: {e}") from None
+
+
+def scenario_family(path: str | Path) -> str:
+    """A scenario file's family: "<suite>/<family>" for a generated suite's file
+    (runs/suites/conflicts/train/cross-left-0003.toml -> "conflicts/cross-left"), else its stem."""
+    p = Path(path)
+    m = re.fullmatch(r"(.+)-\d+", p.stem)
+    if m and p.parent.name in ("train", "test"):
+        return f"{p.parent.parent.name}/{m.group(1)}"
+    return p.stem
 
 
 def scenario_files(spec: str | Path, split: str = "train") -> list[Path]:

@@ -185,6 +185,8 @@ class FastWorld:
         self.actors = None
         self.scenario_of_env: np.ndarray | None = None
         """Scenario index per world (validation, evaluation); None: drawn at each reset."""
+        self.draw_p: np.ndarray | None = None
+        """Draw probability per scenario (a training curriculum); None: uniform."""
         if self.scenarios:
             from racecav.sim.actors import ActorBatch
 
@@ -245,7 +247,10 @@ class FastWorld:
     def _place_scenarios(self, envs: np.ndarray) -> None:
         """Draw a scenario and a trial for each world of ``envs``; place the ego and actors."""
         for n in envs:
-            k = int(self.rng.integers(len(self.scenarios)))
+            if self.draw_p is None:
+                k = int(self.rng.integers(len(self.scenarios)))
+            else:
+                k = int(self.rng.choice(len(self.scenarios), p=self.draw_p))
             if self.scenario_of_env is not None:
                 k = int(self.scenario_of_env[n])
             self.place_trial(int(n), k, self.scenarios[k].sample(self.rng), rescan=False)

@@ -382,3 +382,59 @@ def test_policy_traffic_driver(backend):
         assert seen and seen[-1] == (3, 170)
     finally:
         env.close()
+
+
+def test_scenario_family_names():
+    from racecav.common.scenario import scenario_family
+
+    assert scenario_family("runs/suites/conflicts/train/cross-left-0003.toml") == "conflicts/cross-left"
+    assert scenario_family("x/traffic/test/head-on-0120.toml") == "traffic/head-on"
+    assert scenario_family("common/data/scenarios/conflict-head-to-head.toml") == "conflict-head-to-head"
+
+
+def test_curriculum_draws_the_failing_family_more(tmp_path):
+    """A full-throttle straight car wins the paper-timed crossing and loses the conflict-timed
+    one: the curriculum learns both rates and then draws the failing file about 10x as often."""
+    import shutil
+
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.vec_env import FamilyCurriculum
+
+    for name in ("right-to-left", "conflict-right-to-left"):
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
+    from racecav.common.config import EnvConfig
+
+    cfg = EnvConfig(n_envs=16, scenarios=str(tmp_path), scenario_share=1.0, curriculum=True, n_obstacles=0)
+    env = FastVecEnv(config=cfg, seed=3)
+    cur = env.curriculum
+    assert isinstance(cur, FamilyCurriculum) and cur.names == ["conflict-right-to-left", "right-to-left"]
+    (world,) = cur.worlds
+    assert np.allclose(world.draw_p, 0.5)  # nothing known yet: equal weights
+    env.reset()
+    drawn = {n: 0 for n in cur.names}
+    episodes = 0
+    while episodes < 400:
+        env.step_async(np.tile([1.0, 0.0], (env.num_envs, 1)))
+        _, _, dones, infos = env.step_wait()
+        episodes += int(dones.sum())
+        if episodes > 200:  # after the rates are known: count what the resets draw
+            for n in np.flatnonzero(dones):
+                drawn[cur.names[cur.fam_of[0][world.scenario_index[n]]]] += 1
+    rates = cur.success_rates()
+    assert rates["right-to-left"] > 0.9 and rates["conflict-right-to-left"] < 0.1
+    p = dict(zip(cur.names, world.draw_p))
+    assert p["conflict-right-to-left"] > 8 * p["right-to-left"]
+    assert drawn["conflict-right-to-left"] > 4 * drawn["right-to-left"] > 0
+
+
+def test_curriculum_flag_is_recorded():
+    import argparse
+
+    from racecav.training.train import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--curriculum"])
+    assert config_from_args(args).env.curriculum is True
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts"])
+    assert config_from_args(args).env.curriculum is False

@@ -51,7 +51,7 @@ def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
 def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None) -> list:
     """The fast worlds of a batch of ``n_envs``: traffic worlds (``1 - scenario_share`` of
     them), then scenario worlds grouped by world geometry (sized by their number of files)."""
-    from racecav.common.scenario import load_scenario, scenario_files
+    from racecav.common.scenario import load_scenario, scenario_family, scenario_files
     from racecav.sim.fast_world import FastWorld
 
     n_scen = int(round(settings.scenario_share * n_envs)) if settings.scenarios else 0
@@ -64,18 +64,22 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
         worlds.append(w)
     if n_scen:
         groups: dict[str, list] = {}
+        families: dict[str, list[str]] = {}
         for f in scenario_files(settings.scenarios, "train"):
             sc = load_scenario(f)
             groups.setdefault(sc.world, []).append(sc)
+            families.setdefault(sc.world, []).append(scenario_family(f))
         total = sum(len(g) for g in groups.values())
         sizes = {k: max(1, int(round(n_scen * len(g) / total))) for k, g in groups.items()}
         last = list(sizes)[-1]
         sizes[last] = max(1, n_scen - sum(v for k, v in sizes.items() if k != last))
         for k, (name, scs) in enumerate(groups.items()):
-            worlds.append(FastWorld(n_envs=sizes[name], scenarios=scs, car=settings.car,
-                                    control_period=settings.control_period_s,
-                                    seed=None if seed is None else seed + 7919 * (k + 1),
-                                    parallel=settings.parallel))
+            w = FastWorld(n_envs=sizes[name], scenarios=scs, car=settings.car,
+                          control_period=settings.control_period_s,
+                          seed=None if seed is None else seed + 7919 * (k + 1),
+                          parallel=settings.parallel)
+            w.scenario_families = families[name]  # the curriculum's grouping (training/vec_env.py)
+            worlds.append(w)
     return worlds
 
 

@@ -46,7 +46,7 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty",
-             "progress_reward": "--progress-reward", "brake_below": "--brake-below"}
+             "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum"}
 """EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",
@@ -89,7 +89,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                 p.add_argument(flag, dest=name, type=_flag_type(f.annotation), help=f.description)
         for name, flag in ENV_FLAGS.items():
             f = EnvConfig.model_fields[name]
-            p.add_argument(flag, dest=f"env_{name}", type=_flag_type(f.annotation), help=f.description)
+            if f.annotation is bool:
+                p.add_argument(flag, dest=f"env_{name}", action=argparse.BooleanOptionalAction, default=None,
+                               help=f.description)
+            else:
+                p.add_argument(flag, dest=f"env_{name}", type=_flag_type(f.annotation), help=f.description)
         p.set_defaults(stage=stage)
     from racecav.training import select  # cheap module: argument definitions only
 
@@ -408,8 +412,22 @@ def _make_callback_class():
                     fmt.extra = {"wall_s": round(self.wall(), 2), "samples_per_s": round(rate, 1),
                                  "ep_count": self.episodes}
             self.episodes = 0
+            self._log_curriculum()
             if self.bar is not None:
                 self.bar.set_postfix_str(f"ep_return {ep:.1f}", refresh=False)
+
+        def _log_curriculum(self) -> None:
+            """curriculum.csv: each family's training success rate (the draw weights' input)."""
+            cur = getattr(self.training_env.unwrapped, "curriculum", None)
+            if cur is None:
+                return
+            path = self.run_dir / "curriculum.csv"
+            new = not path.is_file()
+            with path.open("a", newline="") as f:
+                w = csv.writer(f)
+                if new:
+                    w.writerow(["timesteps", *cur.names])
+                w.writerow([self.model.num_timesteps, *(f"{r:.3f}" for r in cur.success_rates().values())])
 
         def save(self, model, final: bool = False) -> Path:
             n = model.num_timesteps

@@ -15,6 +15,7 @@ its scenario's duration.
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any, Sequence
 
 import gymnasium as gym
@@ -24,6 +25,45 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
+
+
+class FamilyCurriculum:
+    """Draw scenario files by family, each family weighted by its recent failure rate.
+
+    A family that the policy passes is still drawn (weight ``FLOOR``), so it is not forgotten;
+    files of a family stay equally likely. Families are grouped across the batch's scenario
+    worlds (a family may span world geometries); each world's draw is renormalised.
+    """
+
+    WINDOW = 200  # episodes per family in the failure rate
+    FLOOR = 0.1
+    MIN_EPISODES = 20  # before this, a family counts as failing half the time
+
+    def __init__(self, worlds: list):
+        self.worlds = [w for w in worlds if w.actors is not None]
+        self.names = sorted({f for w in self.worlds for f in w.scenario_families})
+        ids = {f: i for i, f in enumerate(self.names)}
+        self.fam_of = [np.array([ids[f] for f in w.scenario_families]) for w in self.worlds]
+        self.history = [deque(maxlen=self.WINDOW) for _ in self.names]
+        self.update()
+
+    def record(self, world, envs: np.ndarray, success: np.ndarray) -> None:
+        """Episodes of ``world``'s ``envs`` ended (before their reset draws the next file)."""
+        fam = self.fam_of[self.worlds.index(world)]
+        for n, ok in zip(envs, success):
+            self.history[fam[world.scenario_index[n]]].append(bool(ok))
+
+    def success_rates(self) -> dict[str, float]:
+        """Family -> success rate over its window (NaN before MIN_EPISODES episodes)."""
+        return {f: (float(np.mean(h)) if len(h) >= self.MIN_EPISODES else float("nan"))
+                for f, h in zip(self.names, self.history)}
+
+    def update(self) -> None:
+        rate = np.array(list(self.success_rates().values()))
+        weight = np.maximum(1.0 - np.where(np.isnan(rate), 0.5, rate), self.FLOOR)
+        for w, fam in zip(self.worlds, self.fam_of):
+            p = weight[fam] / np.bincount(fam, minlength=len(self.names))[fam]
+            w.draw_p = p / p.sum()
 
 
 class FastVecEnv(VecEnv):
@@ -72,6 +112,7 @@ class FastVecEnv(VecEnv):
         self.a_prev = np.zeros(n, dtype=np.float64)
         self._actions = np.zeros((n, 2))
         self._stack = np.zeros((n, self.n_stack, spec.n_rays), np.float32)
+        self.curriculum = FamilyCurriculum(self.worlds) if self.settings.curriculum and self.is_scenario.any() else None
         if seed is not None:
             self.seed(seed)
 
@@ -136,11 +177,15 @@ class FastVecEnv(VecEnv):
                     infos[i]["is_success"] = bool(success[i])
             for w, sl in zip(self.worlds, self.slices):
                 idx = np.flatnonzero(dones[sl])
+                if idx.size and self.curriculum is not None and w.actors is not None:
+                    self.curriculum.record(w, idx, success[sl][idx])
                 if idx.size:
                     w.reset_worlds(idx)
                     self._stack[sl][idx] = w.agent_obs()[idx][:, None]  # a new episode: no history
             obs = self._stacked()
             self.a_prev[dones] = 0.0
+            if self.curriculum is not None:
+                self.curriculum.update()
         return obs, rewards, dones, infos
 
     def close(self) -> None:
