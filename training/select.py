@@ -136,7 +136,9 @@ def eval_suite_fast(policy, env_cfg, episodes: int, seed: int = SELECT_SEED) -> 
 
     from racecav.training.vec_env import FastVecEnv
 
-    env = FastVecEnv(n_envs=episodes, config=env_cfg, scenario_share=1.0, seed=seed)
+    # every file equally likely, whatever the run trained with (a curriculum is training only)
+    env = FastVecEnv(n_envs=episodes, config=env_cfg.model_copy(update={"curriculum": False}),
+                     scenario_share=1.0, seed=seed)
     obs = env.reset()
     names = np.concatenate([[w.scenarios[k].name for k in w.scenario_index] for w in env.worlds])
     done = np.zeros(env.num_envs, bool)
@@ -622,8 +624,11 @@ def record_observations(path: Path, seed: int = 7) -> Path:
     return path
 
 
-ABLATION = ("avoid-paper", "avoid-progress", "avoid-progress-stack2", "avoid-traffic", "avoid-brake")
-"""The avoidance runs in ablation order: each adds one change to the row before."""
+ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-progress-stack2", "avoid-progress"),
+            ("avoid-traffic", "avoid-progress-stack2"), ("avoid-brake", "avoid-traffic"),
+            ("avoid-curriculum", "avoid-traffic"))
+"""The avoidance runs in ablation order, each with the run it adds one change to (a rejected
+row's successor builds on the last kept one)."""
 
 
 def _ablation_markdown() -> str:
@@ -631,12 +636,14 @@ def _ablation_markdown() -> str:
     the selection score, on the selection split (the suite's train split with selection seeds,
     fast world; the conflict-timed and paper scenarios in PyBullet with selection seeds)."""
     rows = []
-    prev = None
-    for run in ABLATION:
+    configs = {}
+    for run, base in ABLATION:
         d = COMMITTED / run
         if not (d / "eval.csv").is_file():
             continue
         tc, _ = load_run_config(d)
+        configs[run] = tc
+        prev = configs.get(base)
         with (d / "eval.csv").open() as f:
             evals = [r for r in csv.DictReader(f) if r.get("score") not in (None, "")]
         if not evals:
@@ -644,14 +651,16 @@ def _ablation_markdown() -> str:
         best = pick_best(evals, True)
         best["_last_score"] = max(evals, key=lambda r: int(r["timesteps"]))["score"]
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
-            f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in ("progress_reward", "obs_stack",
-                                                                         "contact_penalty", "scenarios",
-                                                                         "scenario_share", "brake_below")
-            if getattr(prev.env, k) != getattr(tc.env, k)) or "-"
-        if prev is not None and tc.init_from != prev.init_from:
-            change += f"; starts from {Path(tc.init_from).name if tc.init_from else 'scratch'}"
+            [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
+                "progress_reward", "obs_stack", "contact_penalty", "scenarios", "scenario_share", "brake_below",
+                "curriculum") if getattr(prev.env, k) != getattr(tc.env, k)]
+            + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("learning_rate", "ent_coef")
+               if getattr(prev, k) != getattr(tc, k)]) or "-"
+        if prev is not None:
+            change = f"on {base}: {change}"
+            if tc.init_from != prev.init_from:
+                change += f"; starts from {Path(tc.init_from).name if tc.init_from else 'scratch'}"
         rows.append((run, change, best, tc))
-        prev = tc
     if not rows:
         return ""
     fams = sorted(k.removeprefix("suite_") for k in rows[0][2] if k.startswith("suite_") and
