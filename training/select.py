@@ -388,7 +388,7 @@ def save_run_record(run_dir: Path) -> Path:
     """Copy what the report and a resume need into training/checkpoints/<run>/ (committed)."""
     dst = COMMITTED / run_dir.name
     dst.mkdir(parents=True, exist_ok=True)
-    for name in ("config.json", "progress.csv", "eval.csv", "eval.png", "best.json",
+    for name in ("config.json", "progress.csv", "eval.csv", "eval.png", "best.json", "curriculum.csv",
                  "latest.json", "latest.zip", "latest.vecnorm.pkl"):
         if (run_dir / name).is_file():
             shutil.copyfile(run_dir / name, dst / name)
@@ -717,4 +717,32 @@ def _ablation_markdown() -> str:
             img = REPO / "docs" / "img" / f"training_eval_{run}.png"
             shutil.copyfile(COMMITTED / run / "eval.png", img)
             L += [f"![{run} checkpoints](img/{img.name})", ""]
+        if (COMMITTED / run / "curriculum.csv").is_file():
+            img = _plot_curriculum(COMMITTED / run / "curriculum.csv", REPO / "docs" / "img" / f"training_curriculum_{run}.png")
+            L += [f"{run}: each family's success in training (stochastic actions, its last 200 episodes), the "
+                  "input of the curriculum's draw weights (`--curriculum`, training/vec_env.FamilyCurriculum):", "",
+                  f"![{run} curriculum](img/{img.name})", ""]
     return "\n".join(L) + "\n"
+
+
+def _plot_curriculum(csv_path: Path, img: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with csv_path.open() as f:
+        rows = list(csv.DictReader(f))
+    fams = [k for k in rows[0] if k != "timesteps"]
+    x = [int(r["timesteps"]) / 1e6 for r in rows]
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for fam in fams:
+        ax.plot(x, [100 * float(r[fam]) if r[fam] not in ("", "nan") else float("nan") for r in rows],
+                label=fam, ls="-" if fam.startswith(fams[0].split("/")[0]) else "--")
+    ax.set(xlabel="samples (M)", ylabel="training success (%)", ylim=(0, 100), title="curriculum: success per family")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(img, dpi=100)
+    plt.close(fig)
+    return img
