@@ -117,8 +117,9 @@ def plot_success_bars(rows: list[tuple[str, list[tuple[float | None, tuple[float
     for k, (label, cells) in enumerate(rows):
         xs = x - 0.4 + width * (k + 0.5)
         rates = [100 * (c[0] or 0.0) for c in cells]
-        lo = [100 * ((c[0] or 0) - c[1][0]) if c[1] else 0 for c in cells]
-        hi = [100 * (c[1][1] - (c[0] or 0)) if c[1] else 0 for c in cells]
+        # max(0, ...): a Wilson bound equals the rate at 0 or 1 up to rounding (-1e-17 is an error here)
+        lo = [max(0.0, 100 * ((c[0] or 0) - c[1][0])) if c[1] else 0 for c in cells]
+        hi = [max(0.0, 100 * (c[1][1] - (c[0] or 0))) if c[1] else 0 for c in cells]
         ax.bar(xs, rates, width * 0.9, label=label, yerr=[lo, hi], capsize=3)
         papers = [(xx, 100 * c[2]) for xx, c in zip(xs, cells) if c[2] is not None]
         if papers:

@@ -196,7 +196,8 @@ def wilson(successes: int, n: int, z: float = 1.959964) -> tuple[float, float] |
     den = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # the interval holds p: at p = 0 or 1 the bound equals it, not p -+ 1e-16 of rounding
+    return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
 def stats(samples) -> Stats:

@@ -93,3 +93,16 @@ def test_registry_controllers_are_commands_of_the_cli():
         assert c.args[0] in COMMANDS and COMMANDS[c.args[0]][0] == c.module
         assert importlib.util.find_spec(c.module) is not None
     assert "HOLD" not in " ".join(RESOLVED["scripted"].args)
+
+
+def test_wilson_interval_holds_the_rate_at_the_ends(tmp_path):
+    """200/200 once gave an upper bound of 1 - 1e-16: the chart's error bar was then negative
+    and `racecav eval --table` failed after its last trial."""
+    from racecav.evaluation.plots import plot_success_bars
+
+    for n in (1, 10, 100, 200, 700, 1400, 2000):
+        for k in (0, n):
+            lo, hi = R.wilson(k, n)
+            assert lo <= k / n <= hi
+    cells = [(1.0, R.wilson(200, 200), None), (0.0, R.wilson(0, 200), None), (1.0, (0.98, 1 - 1e-16), None)]
+    assert plot_success_bars([("a", cells)], ["x", "y", "z"], tmp_path / "b.png").is_file()
