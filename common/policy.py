@@ -29,7 +29,7 @@ import numpy as np
 
 MODELS_DIR = Path(__file__).resolve().parent / "data" / "policies"
 """Shipped policies: ``MODELS_DIR/<name>.npz`` + ``.json`` (+ the SB3 ``.zip``)."""
-SHIPPED = ("racing", "default", "reversed", "avoid")
+SHIPPED = ("racing", "default", "reversed", "avoid", "avoid-paper")
 _LAYERS = ("w0", "b0", "w1", "b1", "w2", "b2")
 
 
