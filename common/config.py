@@ -316,7 +316,8 @@ class EnvConfig(Section):
     """Scenario episodes: draw files by family, each family weighted by its failure rate over
     its last 200 training episodes (at least 0.1), so training goes where the policy fails;
     False: every train file equally often. Families: a suite file's name without its number,
-    per suite (training/vec_env.FamilyCurriculum)."""
+    per suite. The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
+    gym env draws uniformly."""
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
     More than one shows motion; the policy service stacks the same way (policy metadata)."""

@@ -187,6 +187,8 @@ class FastWorld:
         """Scenario index per world (validation, evaluation); None: drawn at each reset."""
         self.draw_p: np.ndarray | None = None
         """Draw probability per scenario (a training curriculum); None: uniform."""
+        self.scenario_families: list[str] = [sc.name for sc in self.scenarios]
+        """The curriculum's group of each scenario (make_worlds sets suite families)."""
         if self.scenarios:
             from racecav.sim.actors import ActorBatch
 
