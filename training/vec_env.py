@@ -32,7 +32,8 @@ class FamilyCurriculum:
 
     A family that the policy passes is still drawn (weight ``FLOOR``), so it is not forgotten;
     files of a family stay equally likely. Families are grouped across the batch's scenario
-    worlds (a family may span world geometries); each world's draw is renormalised.
+    worlds (a family may span world geometries); each world's draw is renormalised. The
+    history is not checkpointed: a resumed run relearns it in its first episodes.
     """
 
     WINDOW = 200  # episodes per family in the failure rate
