@@ -397,13 +397,12 @@ def test_curriculum_draws_the_failing_family_more(tmp_path):
     one: the curriculum learns both rates and then draws the failing file about 10x as often."""
     import shutil
 
+    from racecav.common.config import EnvConfig
     from racecav.common.scenario import SCENARIOS_DIR
     from racecav.training.vec_env import FamilyCurriculum
 
     for name in ("right-to-left", "conflict-right-to-left"):
         shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
-    from racecav.common.config import EnvConfig
-
     cfg = EnvConfig(n_envs=16, scenarios=str(tmp_path), scenario_share=1.0, curriculum=True, n_obstacles=0)
     env = FastVecEnv(config=cfg, seed=3)
     cur = env.curriculum
