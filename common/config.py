@@ -315,8 +315,8 @@ class EnvConfig(Section):
     curriculum: bool = False
     """Scenario episodes: draw files by family, each family weighted by its failure rate over
     its last 200 training episodes (at least 0.1), so training goes where the policy fails;
-    False: every train file equally often. Families: a suite file's name without its number,
-    per suite. The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
+    False: every train file equally often. Families: each suite's own (its manifest), a
+    plain scenario file is its own family (common/scenario.scenario_sources). The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
     gym env draws uniformly."""
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).

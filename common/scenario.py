@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -278,30 +277,27 @@ def open_suite(name_or_dir: str | Path) -> Suite:
         raise ValueError(f"suite {man}: invalid JSON: {e}") from None
 
 
-def scenario_family(path: str | Path) -> str:
-    """A scenario file's family: "<suite>/<family>" for a generated suite's file
-    (runs/suites/conflicts/train/cross-left-0003.toml -> "conflicts/cross-left"), else its stem."""
-    p = Path(path)
-    m = re.fullmatch(r"(.+)-\d+", p.stem)
-    if m and p.parent.name in ("train", "test"):
-        return f"{p.parent.parent.name}/{m.group(1)}"
-    return p.stem
-
-
-def scenario_files(spec: str | Path, split: str = "train") -> list[Path]:
-    """Scenario files of a suite's split (suite NAME or folder with suite.json), of a folder
-    (every *.toml in it), or one file; several of these separated by commas.
+def scenario_sources(spec: str | Path, split: str = "train") -> list[tuple[Path, str]]:
+    """(file, family) of a suite's split (suite NAME or folder with suite.json; family
+    "<suite folder>/<family>" from its manifest), of a folder (every *.toml in it) or of one
+    file (family: the file's stem); several of these separated by commas.
 
     :raises ValueError: when nothing is found, naming what was looked for.
     """
     if "," in str(spec):
-        return [f for part in str(spec).split(",") if part.strip() for f in scenario_files(part.strip(), split)]
+        return [x for part in str(spec).split(",") if part.strip() for x in scenario_sources(part.strip(), split)]
     p = Path(spec)
     if p.is_file():
-        return [p]
+        return [(p, p.stem)]
     if p.is_dir() and not (p / "suite.json").is_file():
         files = sorted(p.glob("*.toml"))
         if not files:
             raise ValueError(f"scenarios {p}: no *.toml files in the folder")
-        return files
-    return [f for f, _fam in open_suite(spec).files(split)]
+        return [(f, f.stem) for f in files]
+    suite = open_suite(spec)
+    return [(f, f"{suite.root.name}/{fam}") for f, fam in suite.files(split)]
+
+
+def scenario_files(spec: str | Path, split: str = "train") -> list[Path]:
+    """The files of ``scenario_sources(spec, split)``."""
+    return [f for f, _fam in scenario_sources(spec, split)]

@@ -384,14 +384,6 @@ def test_policy_traffic_driver(backend):
         env.close()
 
 
-def test_scenario_family_names():
-    from racecav.common.scenario import scenario_family
-
-    assert scenario_family("runs/suites/conflicts/train/cross-left-0003.toml") == "conflicts/cross-left"
-    assert scenario_family("x/traffic/test/head-on-0120.toml") == "traffic/head-on"
-    assert scenario_family("common/data/scenarios/conflict-head-to-head.toml") == "conflict-head-to-head"
-
-
 def test_curriculum_draws_the_failing_family_more(tmp_path):
     """A full-throttle straight car wins the paper-timed crossing and loses the conflict-timed
     one: the curriculum learns both rates and then draws the failing file about 10x as often."""

@@ -171,6 +171,17 @@ def test_generated_files_make_a_straight_car_collide(small_suite):
     assert hit.all(), [f.name for f, h in zip(files, hit) if not h.all()]
 
 
+def test_scenario_sources_name_each_file_s_family(small_suite):
+    """The curriculum's groups: a suite's manifest family (per suite), a plain file's stem."""
+    from racecav.common.scenario import SCENARIOS_DIR, scenario_sources
+
+    out, man = small_suite
+    plain = SCENARIOS_DIR / "conflict-head-to-head.toml"
+    got = scenario_sources(f"{out},{plain}", "train")
+    assert got[:-1] == [(out / e["file"], f"{out.name}/{e['family']}") for e in man["splits"]["train"]]
+    assert got[-1] == (plain, "conflict-head-to-head")
+
+
 def test_generation_is_reproducible(small_suite, tmp_path):
     out, _ = small_suite
     ff = S.load_families("conflicts")

@@ -51,7 +51,7 @@ def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
 def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None) -> list:
     """The fast worlds of a batch of ``n_envs``: traffic worlds (``1 - scenario_share`` of
     them), then scenario worlds grouped by world geometry (sized by their number of files)."""
-    from racecav.common.scenario import load_scenario, scenario_family, scenario_files
+    from racecav.common.scenario import load_scenario, scenario_sources
     from racecav.sim.fast_world import FastWorld
 
     n_scen = int(round(settings.scenario_share * n_envs)) if settings.scenarios else 0
@@ -65,10 +65,10 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
     if n_scen:
         groups: dict[str, list] = {}
         families: dict[str, list[str]] = {}
-        for f in scenario_files(settings.scenarios, "train"):
+        for f, family in scenario_sources(settings.scenarios, "train"):
             sc = load_scenario(f)
             groups.setdefault(sc.world, []).append(sc)
-            families.setdefault(sc.world, []).append(scenario_family(f))
+            families.setdefault(sc.world, []).append(family)
         total = sum(len(g) for g in groups.values())
         sizes = {k: max(1, int(round(n_scen * len(g) / total))) for k, g in groups.items()}
         last = list(sizes)[-1]

@@ -45,6 +45,7 @@ class FamilyCurriculum:
         self.names = sorted({f for w in self.worlds for f in w.scenario_families})
         ids = {f: i for i, f in enumerate(self.names)}
         self.fam_of = [np.array([ids[f] for f in w.scenario_families]) for w in self.worlds]
+        self._files_of_fam = [np.bincount(fam, minlength=len(self.names))[fam] for fam in self.fam_of]
         self.history = [deque(maxlen=self.WINDOW) for _ in self.names]
         self.update()
 
@@ -62,8 +63,8 @@ class FamilyCurriculum:
     def update(self) -> None:
         rate = np.array(list(self.success_rates().values()))
         weight = np.maximum(1.0 - np.where(np.isnan(rate), 0.5, rate), self.FLOOR)
-        for w, fam in zip(self.worlds, self.fam_of):
-            p = weight[fam] / np.bincount(fam, minlength=len(self.names))[fam]
+        for w, fam, n_files in zip(self.worlds, self.fam_of, self._files_of_fam):
+            p = weight[fam] / n_files
             w.draw_p = p / p.sum()
 
 
