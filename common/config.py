@@ -88,6 +88,9 @@ class SensorConfig(Section):
     """Car file (common/data/cars) whose lidar_mount.yaw says where the device's 0 deg points."""
     mount_yaw_rad: float | None = None
     """Override of the car file's lidar_mount.yaw (rad, CCW from the car's heading)."""
+    scan: Literal["paper", "wide"] = "paper"
+    """The scan published: paper = the car's (170 rays over 90 deg); wide = common/lidar.WIDE_SCAN
+    (338 rays over +-89.7 deg, which holds every view: set it for a wide-view policy)."""
     reset_wait_s: float = Field(2.0, ge=0)
     """Pause after RESET before talking to the device (Slamtec SDK: about 2 s)."""
     spinup_s: float = Field(0.5, ge=0)
@@ -221,6 +224,9 @@ class SimConfig(Section):
     """Car file (common/data/cars)."""
     lidar_range_max: float | None = Field(None, gt=0)
     """Override the car file's lidar range (m); None = the car's (12 m)."""
+    scan: Literal["paper", "wide"] = "paper"
+    """The scan published: paper = the car's (170 rays over 90 deg); wide = common/lidar.WIDE_SCAN
+    (338 rays over +-89.7 deg, which holds every view: set it for a wide-view policy)."""
     publish_obstacles: bool = True
     """Publish ground-truth ObstacleStates every step."""
     lockstep_safety: bool = False
@@ -318,6 +324,10 @@ class EnvConfig(Section):
     False: every train file equally often. Families: each suite's own (its manifest), a
     plain scenario file is its own family (common/scenario.scenario_sources). The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
     gym env draws uniformly."""
+    lidar: Literal["paper", "wide"] = "paper"
+    """The scan the policy sees (common/lidar.VIEWS): paper = 170 rays over the frontal 90 deg;
+    wide = 169 rays over +-89.7 deg (every second ray of the paper's spacing). The policy's
+    metadata carries it; the sim and the sensor then publish common/lidar.WIDE_SCAN."""
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
     More than one shows motion; the policy service stacks the same way (policy metadata)."""

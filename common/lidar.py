@@ -46,6 +46,56 @@ class LidarSpec(BaseModel):
         return self.fov / (self.n_rays - 1)
 
 
+PAPER_INCREMENT = (np.pi / 2) / 169
+"""The paper's ray spacing: 170 rays over 90 degrees."""
+VIEWS: dict[str, LidarSpec] = {
+    # the paper's view: 170 rays over the frontal 90 degrees (the car's scan on the bus)
+    "paper": LidarSpec(),
+    # every second ray of the paper's grid extended to +-89.7 deg (169 rays, 1.07 deg apart): a car
+    # crossing at a shallow angle stays at a constant bearing of about 50 deg on a collision
+    # course, outside the paper's +-45 deg (docs/training.md). The RPLIDAR S2 sees 360 deg.
+    "wide": LidarSpec(n_rays=169, fov=336 * PAPER_INCREMENT, angle_min=-168.5 * PAPER_INCREMENT),
+}
+"""Named views a policy can be trained on (EnvConfig.lidar, the policy's metadata "lidar")."""
+WIDE_SCAN = LidarSpec(n_rays=338, fov=337 * PAPER_INCREMENT, angle_min=-168.5 * PAPER_INCREMENT)
+"""The scan that holds every view: the paper's grid over +-89.7 deg (what the sim and the sensor
+publish when a consumer needs the wide view; each consumer takes its own with view_index)."""
+
+
+def published_scan(car_lidar: LidarSpec, kind: str) -> LidarSpec:
+    """The scan the sim or the sensor publishes: "paper" = the car's lidar, "wide" = WIDE_SCAN's
+    rays with the car's ranges and rate (SimConfig.scan, SensorConfig.scan)."""
+    if kind == "paper":
+        return car_lidar
+    if kind != "wide":
+        raise ValueError(f"scan: expected 'paper' or 'wide', got {kind!r}")
+    return car_lidar.model_copy(update={k: getattr(WIDE_SCAN, k) for k in ("n_rays", "fov", "angle_min")})
+
+
+def view_index(scan: LidarSpec, view: LidarSpec, tol: float = 1e-4) -> np.ndarray:
+    """Indices of ``view``'s rays within ``scan``'s: ``ranges[view_index(...)]`` is the view.
+
+    :raises ValueError: when a ray of the view is not a ray of the scan (within ``tol`` rad).
+    """
+    a_scan, a_view = ray_angles(scan).astype(np.float64), ray_angles(view).astype(np.float64)
+    idx = np.rint((a_view - scan.angle_min) / scan.angle_increment).astype(np.int64)
+    ok = (idx >= 0) & (idx < scan.n_rays)
+    if not ok.all() or np.abs(a_scan[np.clip(idx, 0, scan.n_rays - 1)] - a_view).max() > tol:
+        raise ValueError(f"lidar: a scan of {scan.n_rays} rays from {np.degrees(scan.angle_min):.2f} deg "
+                         f"every {np.degrees(scan.angle_increment):.3f} deg does not hold the view of "
+                         f"{view.n_rays} rays from {np.degrees(view.angle_min):.2f} deg every "
+                         f"{np.degrees(view.angle_increment):.3f} deg")
+    return idx
+
+
+def view_name(spec: LidarSpec) -> str:
+    """The name of a view in VIEWS (ValueError if none matches)."""
+    for k, v in VIEWS.items():
+        if v == spec:
+            return k
+    raise ValueError(f"lidar: {spec} is not a named view ({sorted(VIEWS)})")
+
+
 def ray_angles(spec: LidarSpec | None = None) -> np.ndarray:
     """Ray angles in the laser frame, float32[n_rays], CCW, index 0 = rightmost."""
     spec = spec or LidarSpec()

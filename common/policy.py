@@ -58,6 +58,14 @@ class NumpyPolicy:
         """Scans per observation, newest first (1: the paper's single scan)."""
         if self.obs_stack < 1 or self.obs_dim % self.obs_stack:
             raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the input size {self.obs_dim}")
+        from racecav.common.lidar import VIEWS
+
+        view = self.metadata.get("lidar", "paper")
+        if view not in VIEWS:
+            raise ValueError(f"policy metadata: lidar {view!r} is not a view ({sorted(VIEWS)})")
+        self.lidar = VIEWS[view]
+        """The scan the policy was trained on (common/lidar.VIEWS; the paper's 90 deg unless
+        its metadata says otherwise)."""
         bb = self.metadata.get("brake_below")
         self.brake_below = None if bb is None else float(bb)
         """a_T below this brakes (a policy trained with EnvConfig.brake_below); None: never."""

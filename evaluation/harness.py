@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import json
 import threading
 import time
 from contextlib import ExitStack
@@ -67,6 +68,14 @@ def missing(ctrl: Controller) -> str | None:
     if ctrl.model is not None and not ctrl.model.exists():
         return f"the shipped weights {ctrl.model} do not exist yet"
     return None
+
+
+def scan_kind(ctrl: Controller) -> str:
+    """The scan the sim publishes for ``ctrl`` (SimConfig.scan): its policy's view, else paper."""
+    if ctrl.model is None:
+        return "paper"
+    meta = Path(ctrl.model).with_suffix(".json")
+    return json.loads(meta.read_text()).get("lidar", "paper") if meta.is_file() else "paper"
 
 
 class HarnessError(RuntimeError):
@@ -231,7 +240,9 @@ class Harness:
                 "RACECAV_SIM__ON_END": "hold",
                 # a scan the controller missed (it subscribed late) is republished soon
                 "RACECAV_SIM__LOCKSTEP_TIMEOUT_S": "0.5",
-                "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf)})
+                "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf),
+                # a wide-view policy needs the wide scan (it holds the paper's rays too)
+                "RACECAV_SIM__SCAN": scan_kind(self.ctrl)})
             if self.safety:  # before the sim: a lockstep sim waits for its verdicts
                 env["RACECAV_SIM__LOCKSTEP_SAFETY"] = "true"
                 self._start("safety", ["safety"], env)

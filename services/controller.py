@@ -5,8 +5,10 @@ The DRL policy (``racecav policy``) and the MPC-APF baseline (``racecav baseline
 the same rules; the simulator or the car cannot tell which one runs (only ``source`` differs).
 
 Rules for a scan (counted in the status ``info``, never a command):
-- malformed: not the policy's lidar geometry (ray count, angle_min, angle_increment of the car's
-  LidarSpec) -> ``malformed``; undecodable payloads are the bus's ``invalid``;
+- malformed: the scan does not hold the controller's view (ray count, angle_min, angle_increment
+  of its LidarSpec: the car's, or the policy's metadata "lidar"; a wider scan holding those rays
+  is fine, the view is taken from it) -> ``malformed``; undecodable payloads are the bus's
+  ``invalid``;
 - stale: it arrived more than ``max_scan_age_s`` ago (wall clock) by the time it is answered,
   or, for a ``source = "real"`` scan (stamped with this host's monotonic clock), its stamp is
   older than that -> ``stale``;
@@ -29,7 +31,7 @@ import numpy as np
 from racecav.common import keys
 from racecav.common.bus import Service
 from racecav.common.config import Config
-from racecav.common.lidar import LidarSpec
+from racecav.common.lidar import LidarSpec, view_index
 from racecav.common.messages import INT64_MAX, DriveCommand, Scan
 from racecav.common.vehicle import CarParams, brake_from_action, steer_from_action, throttle_from_action
 
@@ -47,6 +49,22 @@ def scan_problem(scan: Scan, spec: LidarSpec) -> str | None:
     if abs(scan.angle_increment - spec.angle_increment) > GEOMETRY_TOL:
         return f"angle_increment: {scan.angle_increment:.6f} rad, expected {spec.angle_increment:.6f}"
     return None
+
+
+def scan_view(scan: Scan, spec: LidarSpec) -> np.ndarray | None:
+    """Indices of the view ``spec`` within ``scan``'s rays; None when the scan is exactly that
+    view (the usual case: no copy). A wider scan (common/lidar.WIDE_SCAN) holds every named view.
+
+    :raises ValueError: why the scan does not hold the view.
+    """
+    if scan_problem(scan, spec) is None:
+        return None
+    n = scan.ranges.shape[0]
+    if n < 2:
+        raise ValueError(f"ranges: {n} rays, the policy's lidar has {spec.n_rays}")
+    geom = LidarSpec(n_rays=n, fov=scan.angle_increment * (n - 1), angle_min=scan.angle_min,
+                     range_min=spec.range_min, range_max=spec.range_max)
+    return view_index(geom, spec, tol=GEOMETRY_TOL)
 
 
 def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams, scan: Scan,
@@ -84,10 +102,14 @@ class ControllerService(Service):
     brake_below: float | None = None
     """The controller's brake action: a_T below it brakes (a policy's metadata); None: never."""
 
-    def __init__(self, cfg: Config, name: str, car: CarParams, max_scan_age_s: float):
+    def __init__(self, cfg: Config, name: str, car: CarParams, max_scan_age_s: float,
+                 view: LidarSpec | None = None):
         super().__init__(cfg, name)
         self.car_params = car
-        self.spec = car.lidar
+        self.spec = view or car.lidar
+        """The rays the controller sees (its view); a scan may hold more (:func:`scan_view`)."""
+        self._views: dict[tuple, np.ndarray | None] = {}  # scan geometry -> view indices
+        self._idx: np.ndarray | None = None  # of the scan being answered
         self.max_age_ns = int(max_scan_age_s * 1e9)
         self.counts = {"answered": 0, "stale": 0, "malformed": 0, "no_action": 0}
         self.last_compute_ns = 0
@@ -107,6 +129,10 @@ class ControllerService(Service):
         with self._answer_lock:
             self.answer(scan, time.monotonic_ns())
 
+    def view(self, scan: Scan) -> np.ndarray:
+        """The ranges of the controller's view in a scan that passed :meth:`check`."""
+        return scan.ranges if self._idx is None else scan.ranges[self._idx]
+
     def act(self, scan: Scan) -> tuple[float, float] | None:
         """Normalised action (a_T, a_delta) for a valid, fresh scan; None = no command."""
         raise NotImplementedError
@@ -114,11 +140,17 @@ class ControllerService(Service):
     def check(self, scan: Scan, arrival_ns: int) -> bool:
         """True if ``scan`` (arrived at monotonic ``arrival_ns``) may be answered; otherwise
         count why and return False."""
-        problem = scan_problem(scan, self.spec)
-        if problem is not None:
-            self.counts["malformed"] += 1
-            self._record_error(f"malformed scan {scan.seq}: {problem}")
-            return False
+        key = (scan.ranges.shape[0], scan.angle_min, scan.angle_increment)
+        if key not in self._views:
+            try:
+                self._views[key] = scan_view(scan, self.spec)
+            except ValueError as e:
+                self.counts["malformed"] += 1
+                self._record_error(f"malformed scan {scan.seq}: {e}")
+                return False
+            if len(self._views) > 8:  # garbage geometries must not grow the cache
+                self._views = {key: self._views[key]}
+        self._idx = self._views[key]
         now = time.monotonic_ns()
         age = now - arrival_ns
         if scan.source == "real":

@@ -3,8 +3,10 @@ with exactly the offline action; bad, stale and missing scans get no command and
 
 from __future__ import annotations
 
+import json
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,17 +20,23 @@ from racecav.common.vehicle import load_car, steer_from_action
 from racecav.common.policy import NumpyPolicy, load_policy
 
 
-def random_policy_file(path, seed: int = 0, normalize: bool = True):
-    """Weights of the shipped format (random, right shapes), with VecNormalize statistics."""
+def random_policy_file(path, seed: int = 0, normalize: bool = True, view: str = "paper"):
+    """Weights of the shipped format (random, right shapes), with VecNormalize statistics;
+    ``view``: the lidar view it is for (common/lidar.VIEWS; metadata beside it unless paper)."""
+    from racecav.common.lidar import VIEWS
+
+    n = VIEWS[view].n_rays
     rng = np.random.default_rng(seed)
-    arrays = {"w0": rng.normal(0, 0.15, (170, 64)), "b0": rng.normal(0, 0.1, 64),
+    arrays = {"w0": rng.normal(0, 0.15, (n, 64)), "b0": rng.normal(0, 0.1, 64),
               "w1": rng.normal(0, 0.2, (64, 64)), "b1": rng.normal(0, 0.1, 64),
               "w2": rng.normal(0, 0.3, (64, 2)), "b2": rng.normal(0, 0.1, 2), "log_std": np.zeros(2)}
     arrays = {k: v.astype(np.float32) for k, v in arrays.items()}
     if normalize:
-        arrays.update(obs_mean=rng.uniform(1, 6, 170), obs_var=rng.uniform(0.5, 9, 170),
+        arrays.update(obs_mean=rng.uniform(1, 6, n), obs_var=rng.uniform(0.5, 9, n),
                       obs_clip=np.float64(10.0), obs_eps=np.float64(1e-8))
     np.savez(path, **arrays)
+    if view != "paper":
+        Path(path).with_suffix(".json").write_text(json.dumps({"lidar": view}))
     return path
 
 

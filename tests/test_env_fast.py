@@ -9,7 +9,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import racecav.training  # noqa: F401  (registers racecav/Overtake-v0)
-from racecav.common.lidar import ray_angles
+from racecav.common.lidar import published_scan, ray_angles
+from racecav.common.vehicle import load_car
 from racecav.sim.fast_world import FastWorld
 from racecav.training.env import OvertakeEnv, reward
 from racecav.training.vec_env import FastVecEnv
@@ -228,8 +229,12 @@ def _brute_force_scan(fw, n, c):
     return np.where(t <= fw.spec.range_max, t, np.inf)
 
 
-def test_lidar_matches_brute_force_for_every_car():
-    fw = FastWorld(n_envs=6, obstacle_lidar=True, seed=0)
+@pytest.mark.parametrize("scan", ["paper", "wide"])
+def test_lidar_matches_brute_force_for_every_car(scan):
+    # the wide scan's outer rays are nearly parallel to the car's side: the fan culling's
+    # half-plane test is valid up to +-90 deg
+    car = load_car().model_copy(update={"lidar": published_scan(load_car().lidar, scan)})
+    fw = FastWorld(n_envs=6, obstacle_lidar=True, seed=0, car=car)
     fw.reset()
     rng = np.random.default_rng(0)
     for _ in range(25):

@@ -13,7 +13,7 @@ import pytest
 from racecav.common import keys, procs
 from racecav.common.client import get_status
 from racecav.common.codec import decode, encode
-from racecav.common.lidar import LidarSpec, ray_angles
+from racecav.common.lidar import LidarSpec, published_scan, ray_angles
 from racecav.common.messages import DriveCommand, Scan
 from racecav.services.sensor.emulator import WallScene, default_walls
 
@@ -29,7 +29,9 @@ def wait_until(pred, timeout=10.0, step=0.05):
     return False
 
 
-def test_emulated_rplidar_to_scans_on_the_bus(spawn, session, tmp_path):
+@pytest.mark.parametrize("kind", ["paper", "wide"])
+def test_emulated_rplidar_to_scans_on_the_bus(spawn, session, tmp_path, kind):
+    """``kind``: SensorConfig.scan (wide: the +-89.7 deg scan a wide-view policy takes its rays from)."""
     link = tmp_path / "rplidar"
     spawn("emulate", "rplidar", "--link", str(link), "--reset-s", "0.1")
     assert wait_until(link.exists)
@@ -43,7 +45,8 @@ def test_emulated_rplidar_to_scans_on_the_bus(spawn, session, tmp_path):
     sub = session.declare_subscriber(keys.topic(CAR, keys.SCAN), on_scan)
     try:
         p = spawn("sensor", "--port", str(link), env={"RACECAV_SENSOR__RESET_WAIT_S": "0.2",
-                                                      "RACECAV_SENSOR__SPINUP_S": "0.05"})
+                                                      "RACECAV_SENSOR__SPINUP_S": "0.05",
+                                                      "RACECAV_SENSOR__SCAN": kind})
         procs.wait_alive(session, CAR, "sensor", proc=p)
         assert wait_until(lambda: len(scans) >= 12, timeout=15), f"{len(scans)} scans"
     finally:
@@ -52,12 +55,12 @@ def test_emulated_rplidar_to_scans_on_the_bus(spawn, session, tmp_path):
         got = list(scans)
     rate = (len(got) - 2) / (got[-1][0] - got[1][0])
     assert 7 < rate < 13  # once per revolution
-    spec = LidarSpec()
+    spec = published_scan(LidarSpec(), kind)
     truth = WallScene(default_walls()).ranges_mm(-np.degrees(ray_angles(spec).astype(np.float64))) / 1000.0
     seqs = [s.seq for _, s in got]
     assert seqs == sorted(seqs)
     for _, s in got[-3:]:
-        assert s.source == "real" and s.ranges.shape == (170,) and s.angle_min == pytest.approx(spec.angle_min)
+        assert s.source == "real" and s.ranges.shape == (spec.n_rays,) and s.angle_min == pytest.approx(spec.angle_min)
         err = np.abs(s.ranges - truth)
         assert np.median(err) < 0.002 and np.mean(err < 0.01) > 0.97
         assert abs(time.monotonic_ns() - s.stamp_ns) < 5e9  # monotonic stamps, like every real message

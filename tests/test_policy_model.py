@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from racecav.common.policy import MODELS_DIR, SHIPPED, NumpyPolicy, export_policy, load_policy
+from tests.recorded import recorded_obs
 
 ROOT = Path(__file__).resolve().parents[1]
 OBS = np.load(ROOT / "tests" / "data" / "policy_obs.npz")["obs"]
@@ -50,7 +51,7 @@ def stacked(obs: np.ndarray, k: int) -> np.ndarray:
 @pytest.mark.parametrize("name", PRESENT)
 def test_numpy_equals_sb3_on_recorded_observations(name):
     pol = load_policy(name)
-    OBS = stacked(globals()["OBS"], pol.obs_stack)
+    OBS = stacked(recorded_obs(pol.lidar), pol.obs_stack)
     ref = _sb3_actions(MODELS_DIR / f"{name}.zip", OBS)
     got = pol(OBS)
     assert got.dtype == np.float32 and got.shape == (len(OBS), 2)
@@ -70,7 +71,7 @@ def test_metadata(name):
         assert key in meta, key
     assert meta["training_steps"] > 0
     pol = load_policy(name)
-    assert pol.n_params == 170 * pol.obs_stack * 64 + 64 + 64 * 64 + 64 + 64 * 2 + 2
+    assert pol.n_params == pol.lidar.n_rays * pol.obs_stack * 64 + 64 + 64 * 64 + 64 + 64 * 2 + 2
     assert pol.obs_stack == meta.get("obs_stack", 1)
     assert pol.normalize == (meta["normalization"] is not None)
     assert pol.metadata["training_steps"] == meta["training_steps"]

@@ -16,6 +16,7 @@ from racecav.common import keys, procs
 from racecav.common.codec import encode
 from racecav.common.lidar import LidarSpec, sanitize
 from racecav.common.policy import MODELS_DIR, SHIPPED, load_policy
+from tests.recorded import recorded_obs
 from tests.test_controllers_policy import Commands, _test_scan, random_policy_file
 
 pytest.importorskip("onnxruntime")
@@ -26,10 +27,10 @@ SPEC = LidarSpec()
 PRESENT = [n for n in SHIPPED if (MODELS_DIR / f"{n}.npz").is_file()]
 
 
-def recorded_scans() -> np.ndarray:
-    """The recorded observations (tests/data) as Scan ranges (nothing within range -> +inf),
-    plus values the sensor may send: no return, beyond range, below range_min."""
-    obs = np.load(ROOT / "tests" / "data" / "policy_obs.npz")["obs"].astype(np.float32)
+def recorded_scans(view: LidarSpec | None = None) -> np.ndarray:
+    """The recorded observations (tests/data) of a view as Scan ranges (nothing within range ->
+    +inf), plus values the sensor may send: no return, beyond range, below range_min."""
+    obs = recorded_obs(view).astype(np.float32)
     raw = np.where(obs >= SPEC.range_max, np.inf, obs).astype(np.float32)
     rng = np.random.default_rng(0)
     extra = raw[rng.integers(0, len(raw), 60)].copy()
@@ -49,7 +50,7 @@ def test_exported_model_equals_numpy_on_recorded_scans(tmp_path, name):
 
     ort = OnnxPolicy(out / "model.onnx")
     pol = load_policy(name)
-    scans = recorded_scans()
+    scans = recorded_scans(pol.lidar)
     if pol.obs_stack > 1:  # each scan with the ones before it, newest first
         scans = np.concatenate([np.roll(scans, i, axis=0) for i in range(pol.obs_stack)], axis=1)
     ref = pol(sanitize(scans, SPEC))
@@ -58,8 +59,9 @@ def test_exported_model_equals_numpy_on_recorded_scans(tmp_path, name):
     assert np.abs(np.array([ort(s) for s in scans[:20]]) - ref[:20]).max() < 1e-5  # single-scan path
     assert len(np.unique(got.round(3), axis=0)) > 20  # not a constant output
     meta = json.loads((out / "model.json").read_text())
-    assert meta["input"]["rays"]["n"] == 170 and meta["input"]["rays"]["angle_min"] == pytest.approx(-np.pi / 4)
-    assert meta["input"]["stack"] == pol.obs_stack and meta["input"]["shape"][1] == 170 * pol.obs_stack
+    v = pol.lidar
+    assert meta["input"]["rays"]["n"] == v.n_rays and meta["input"]["rays"]["angle_min"] == pytest.approx(v.angle_min)
+    assert meta["input"]["stack"] == pol.obs_stack and meta["input"]["shape"][1] == v.n_rays * pol.obs_stack
     assert meta["output"]["actions"] == ["a_throttle", "a_steer"] and meta["output"]["clip"] == [-1.0, 1.0]
     assert meta["normalization"]["inside_model"] == pol.normalize and meta["network"]["n_params"] == pol.n_params
 

@@ -48,6 +48,19 @@ def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
     return EnvConfig.model_validate({**cfg.model_dump(), **update}) if update else cfg
 
 
+def env_car(settings: EnvConfig):
+    """The car of ``settings`` as the env drives it: its control period and the policy's lidar
+    view (EnvConfig.lidar) applied. Both backends take the scan from ``car.lidar``."""
+    from racecav.common.lidar import VIEWS
+    from racecav.common.vehicle import load_car
+
+    car = load_car(settings.car)
+    update: dict[str, Any] = {"lidar": VIEWS[settings.lidar]}
+    if settings.control_period_s is not None:
+        update["control_period_s"] = settings.control_period_s
+    return car.model_copy(update=update)
+
+
 def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None) -> list:
     """The fast worlds of a batch of ``n_envs``: traffic worlds (``1 - scenario_share`` of
     them), then scenario worlds grouped by world geometry (sized by their number of files)."""
@@ -74,7 +87,7 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
         last = list(sizes)[-1]
         sizes[last] = max(1, n_scen - sum(v for k, v in sizes.items() if k != last))
         for k, (name, scs) in enumerate(groups.items()):
-            w = FastWorld(n_envs=sizes[name], scenarios=scs, car=settings.car,
+            w = FastWorld(n_envs=sizes[name], scenarios=scs, car=env_car(settings),
                           control_period=settings.control_period_s,
                           seed=None if seed is None else seed + 7919 * (k + 1),
                           parallel=settings.parallel)
@@ -96,20 +109,19 @@ def make_world(settings: EnvConfig, n_envs: int = 1, seed: int | None = None, dr
     if settings.backend == "fast":
         from racecav.sim.fast_world import FastWorld
 
-        return FastWorld(n_envs=n_envs, world=settings.world, car=settings.car,
+        if settings.lidar != "paper" and settings.n_obstacles and isinstance(driver, str) and driver.startswith("policy:"):
+            raise ValueError("lidar: a policy traffic driver sees the paper's scan; train the wide view with driver centerline")
+        return FastWorld(n_envs=n_envs, world=settings.world, car=env_car(settings),
                          n_obstacles=settings.n_obstacles, heading=settings.heading, driver=driver,
                          agent_speed_scale=scale, control_period=settings.control_period_s,
                          seed=seed, parallel=settings.parallel)
-    from racecav.common.vehicle import load_car
     from racecav.sim.bullet_world import BulletWorld
 
     if n_envs != 1:
         raise ValueError("backend: the bullet backend runs one world per env")
     if settings.world != "racetrack":
         raise ValueError(f"world: the bullet overtaking env runs on the racetrack (got {settings.world!r})")
-    car = load_car(settings.car)
-    if settings.control_period_s is not None:
-        car = car.model_copy(update={"control_period_s": settings.control_period_s})
+    car = env_car(settings)
     return BulletWorld("racetrack", car=car, traffic_driver=driver, heading=settings.heading,
                        n_obstacles=settings.n_obstacles, seed=seed or 0, agent_speed_scale=scale)
 
@@ -198,10 +210,9 @@ class OvertakeEnv(gym.Env):
         st = self.settings
         if st.scenarios and st.backend == "bullet":
             from racecav.common.scenario import load_scenario, scenario_files
-            from racecav.common.vehicle import load_car
 
             self.worlds = [BulletScenarios([load_scenario(f) for f in scenario_files(st.scenarios, "train")],
-                                           load_car(st.car))]
+                                           env_car(st))]
             self.weights = np.ones(1)
         elif st.scenarios:  # one fast world per world geometry, drawn by their number of files
             self.worlds = make_worlds(st, n_envs=1, driver=drv_obj)

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from racecav.common import registry
+from racecav.common.lidar import VIEWS
 from racecav.training.runs import load_run_config
 
 log = logging.getLogger("racecav.train")
@@ -71,8 +72,10 @@ def run(args, cfg) -> int:
 
 
 # ----------------------------------------------------------------------------------- evaluation
-def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: float | None = None):
-    """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present)."""
+def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: float | None = None,
+                           lidar: str = "paper"):
+    """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present); the
+    arguments are the run's env settings its metadata records (EnvConfig)."""
     import pickle
 
     from stable_baselines3 import PPO
@@ -87,7 +90,7 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: floa
             norm = pickle.load(f)
         arrays.update(obs_mean=norm.obs_rms.mean, obs_var=norm.obs_rms.var,
                       obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
-    return NumpyPolicy(arrays, {"obs_stack": obs_stack, "brake_below": brake_below})
+    return NumpyPolicy(arrays, {"obs_stack": obs_stack, "brake_below": brake_below, "lidar": lidar})
 
 
 def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
@@ -166,7 +169,7 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
     from racecav.common.policy import ScanStack
     from racecav.common.vehicle import brake_from_action
 
-    bw = BulletWorld(scenario)
+    bw = BulletWorld(scenario, lidar=getattr(policy, "lidar", None))  # the policy's view
     dur = bw.scenario.duration_s
     ok = contact = 0
     prog, paths = [], []
@@ -239,7 +242,7 @@ def select(args, cfg) -> int:
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
             rows.append(prev)
             continue
-        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below)
+        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar)
         row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, tc.env, args.episodes)}
         if not args.no_intersection:
             rates = []
@@ -367,7 +370,9 @@ def ship(args, cfg) -> int:
             "git_commit_export": git_commit(),
             "run_total_steps": latest.get("timesteps"), "run_wall_s": latest.get("wall_s"),
             "selection": evals.get(n), "obs_stack": tc.env.obs_stack,
-            "observation": ("sanitised lidar ranges (common/lidar.sanitize), 170, m"
+            "lidar": tc.env.lidar,
+            "observation": (f"sanitised lidar ranges (common/lidar.sanitize), the {tc.env.lidar!r} view "
+                            f"(common/lidar.VIEWS, {VIEWS[tc.env.lidar].n_rays} rays), m"
                             + (f"; the newest {tc.env.obs_stack} scans, newest first"
                                if tc.env.obs_stack > 1 else "")),
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"
@@ -586,12 +591,18 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
     return "\n".join(L) + "\n"
 
 
-def record_observations(path: Path, seed: int = 7) -> Path:
+def record_observations(path: Path, seed: int = 7, scan: str = "paper") -> Path:
     """Record real observations for the SB3-vs-numpy equality test (tests/data/policy_obs.npz):
     fast-world scans with traffic (both headings, racing policy driving) and PyBullet
-    intersection scans, including near-contact ones."""
+    intersection scans, including near-contact ones.
+
+    ``scan="wide"``: common/lidar.WIDE_SCAN, which holds every view (tests/data/policy_obs_wide.npz,
+    for policies trained on a wider view): PyBullet only (the racetrack with traffic, the paper's
+    and the conflict-timed scenarios), the racing policy driving on the paper's rays of it.
+    """
     import numpy as np
 
+    from racecav.common.lidar import WIDE_SCAN, view_index
     from racecav.common.policy import load_policy
     from racecav.sim.bullet_world import BulletWorld
     from racecav.training.vec_env import FastVecEnv
@@ -599,20 +610,27 @@ def record_observations(path: Path, seed: int = 7) -> Path:
     pol = load_policy("racing")
     rng = np.random.default_rng(seed)
     out = []
-    for heading in ("default", "reversed"):
-        env = FastVecEnv(n_envs=16, heading=heading, n_obstacles=15, driver="policy:racing", seed=seed)
-        obs = env.reset()
-        for k in range(60):
-            a = pol(obs)
-            a[:, 1] += rng.normal(0, 0.3, len(a))  # some off-policy wandering: walls up close
-            obs, *_ = env.step(np.clip(a, -1, 1))
-            if k % 20 == 19:
-                out.append(obs.copy())
-    for sc in SCENARIOS:
-        bw = BulletWorld(sc)
+    if scan == "paper":
+        for heading in ("default", "reversed"):
+            env = FastVecEnv(n_envs=16, heading=heading, n_obstacles=15, driver="policy:racing", seed=seed)
+            obs = env.reset()
+            for k in range(60):
+                a = pol(obs)
+                a[:, 1] += rng.normal(0, 0.3, len(a))  # some off-policy wandering: walls up close
+                obs, *_ = env.step(np.clip(a, -1, 1))
+                if k % 20 == 19:
+                    out.append(obs.copy())
+    lidar = None if scan == "paper" else WIDE_SCAN
+    paper = slice(None) if lidar is None else view_index(WIDE_SCAN, pol.lidar)
+    scenarios = SCENARIOS if scan == "paper" else ("racetrack", *SCENARIOS, *CONFLICT_SCENARIOS)
+    for sc in scenarios:
+        bw = BulletWorld(sc, lidar=lidar, seed=seed)
         obs = bw.reset(seed=seed)
-        for k in range(40):
-            obs, _, col, _ = bw.step(pol(obs[0]))
+        for k in range(40 if sc != "racetrack" else 120):
+            a = pol(obs[0][paper])
+            if lidar is not None:
+                a[1] = np.clip(a[1] + rng.normal(0, 0.3), -1, 1)
+            obs, _, col, _ = bw.step(a)
             if k % 5 == 0:
                 out.append(obs.copy())
             if col[0]:
@@ -626,7 +644,7 @@ def record_observations(path: Path, seed: int = 7) -> Path:
 
 ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-progress-stack2", "avoid-progress"),
             ("avoid-traffic", "avoid-progress-stack2"), ("avoid-brake", "avoid-traffic"),
-            ("avoid-curriculum", "avoid-traffic"))
+            ("avoid-curriculum", "avoid-traffic"), ("avoid-wide", "avoid-curriculum"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -653,7 +671,7 @@ def _ablation_markdown() -> str:
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "contact_penalty", "scenarios", "scenario_share", "brake_below",
-                "curriculum") if getattr(prev.env, k) != getattr(tc.env, k)]
+                "curriculum", "lidar") if getattr(prev.env, k) != getattr(tc.env, k)]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("learning_rate", "ent_coef")
                if getattr(prev, k) != getattr(tc, k)]) or "-"
         if prev is not None:
@@ -671,7 +689,8 @@ def _ablation_markdown() -> str:
          "--driver centerline --preset fast --ent-coef 0.005 --scenarios conflicts --scenario-share 0.6 "
          "--init-from common/data/policies/reversed.zip --init-std 0.4` plus the changes of the rows above and "
          "its own (the change column, relative to the run it builds on; rows 4-5 start from row 3's shipped "
-         "checkpoint and row 6 from row 4's, with `--init-std 0.3`: the avoid policy shipped then); its "
+         "checkpoint and row 6 from row 4's, row 7 from row 6's, with `--init-std 0.3`: the avoid policy "
+         "shipped then; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
          "checkpoints are scored by `racecav train select --trials 100` on the selection split only: the "
          "suite's train split with selection seeds in the fast world (suite columns, "
          f"{rows[0][2].get('suite_episodes')} episodes) and, in PyBullet in-process with selection seeds "

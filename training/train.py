@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 from racecav.common.bench import git_commit
+from racecav.common.lidar import VIEWS
 from racecav.training.runs import load_run_config
 
 log = logging.getLogger("racecav.train")
@@ -46,7 +47,8 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty",
-             "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum"}
+             "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
+             "lidar": "--lidar"}
 """EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",
@@ -234,11 +236,14 @@ def train(args, cfg) -> int:
                 # a 1-scan policy's for every scan of a stack
                 with init_norm.open("rb") as f:
                     old = pickle.load(f)
-                reps = venv.observation_space.shape[0] // len(old.obs_rms.mean)
+                src_view, view = source_view(Path(tc.init_from)), VIEWS[tc.env.lidar]
                 venv.ret_rms = old.ret_rms
-                venv.obs_rms.mean = np.tile(old.obs_rms.mean, reps)
-                venv.obs_rms.var = np.tile(old.obs_rms.var, reps)
-                venv.obs_rms.count = old.obs_rms.count
+                venv.obs_rms.mean, venv.obs_rms.var = (
+                    map_inputs(a, src_view, view, tc.env.obs_stack, stats=True)
+                    for a in (old.obs_rms.mean, old.obs_rms.var))
+                # a new view's outer rays start from the nearest old ray's statistics: a smaller
+                # count lets them adapt within ~1 M samples
+                venv.obs_rms.count = old.obs_rms.count if src_view == view else min(old.obs_rms.count, 1e5)
     if args.resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         _truncate_csv(run_dir / "progress.csv", model.num_timesteps)
@@ -246,7 +251,7 @@ def train(args, cfg) -> int:
     else:
         model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         if tc.init_from:
-            init_weights(model, Path(tc.init_from), tc.init_std)
+            init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar])
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     remaining = total - model.num_timesteps
@@ -268,23 +273,79 @@ def train(args, cfg) -> int:
     return 0
 
 
-def init_weights(model, path: Path, std: float | None = None) -> None:
-    """Start ``model``'s policy from an SB3 zip. A first layer narrower than the model's (a
-    1-scan policy into a stacked observation) is widened with zero weights on the extra inputs,
-    so the new model starts with the old behaviour. ``std``: reset the action std to this."""
+def source_view(path: Path):
+    """The lidar view a policy zip was trained on: its metadata (a shipped policy's .json), else
+    its run's config.json (a checkpoint), else the paper's."""
+    meta = path.with_suffix(".json")
+    if meta.is_file() and "lidar" in (m := json.loads(meta.read_text())):
+        return VIEWS[m["lidar"]]
+    if (path.parent.parent / "config.json").is_file():
+        return VIEWS[load_run_config(path.parent.parent)[0].env.lidar]
+    return VIEWS["paper"]
+
+
+def map_inputs(w, src, dst, n_stack: int, stats: bool = False):
+    """Input-side arrays of a policy trained on view ``src`` for a model on view ``dst`` with
+    ``n_stack`` scans: first-layer weights (out, S_src * R_src) or VecNormalize statistics
+    (stats=True, shape (S_src * R_src,)).
+
+    Weights: source ray i adds into the destination ray nearest in angle (two rays that fall
+    on one wider-spaced ray add up, as they saw nearly the same range); destination rays outside
+    the source view and extra scan slots get zero, so the model starts with the old behaviour.
+    Statistics: each destination ray takes its nearest source ray's, extra slots the last slot's.
+    """
+    import numpy as np
+
+    def angles(v):  # float64 (ray_angles is float32: too coarse to break ties consistently)
+        return v.angle_min + v.angle_increment * np.arange(v.n_rays)
+
+    a_src, a_dst = angles(src), angles(dst)
+    w = np.asarray(w)
+    w2 = w[None] if stats else w
+    r_src, r_dst = len(a_src), len(a_dst)
+    s_src = w2.shape[1] // r_src
+    out = np.zeros((w2.shape[0], n_stack * r_dst), dtype=w2.dtype)
+    def nearest(a, view):  # ray of ``view`` nearest to angles a; a tie (half-way) goes to the lower
+        x = (a - view.angle_min) / view.angle_increment
+        return np.ceil(x - 0.5 - 1e-3).astype(np.int64), x
+
+    if stats:
+        near = np.clip(nearest(a_dst, src)[0], 0, r_src - 1)  # per destination ray
+    else:
+        near, _ = nearest(a_src, dst)  # per source ray
+        inside = (near >= 0) & (near < r_dst)
+        near = np.clip(near, 0, r_dst - 1)
+    for k in range(n_stack):
+        if k >= s_src and not stats:
+            break
+        block = w2[:, min(k, s_src - 1) * r_src:(min(k, s_src - 1) + 1) * r_src]
+        dst_block = out[:, k * r_dst:(k + 1) * r_dst]
+        if stats:
+            dst_block[:] = block[:, near]
+        else:
+            np.add.at(dst_block.T, near[inside], block.T[inside])
+    return out[0] if stats else out
+
+
+def init_weights(model, path: Path, std: float | None = None, view=None) -> None:
+    """Start ``model``'s policy from an SB3 zip. A first layer for other inputs (a 1-scan policy
+    into a stacked observation, the paper's view into a wider one) is mapped by map_inputs, so
+    the new model starts with the old behaviour. ``std``: reset the action std to this.
+    ``view``: the model's lidar view (default the paper's)."""
     import numpy as np
     import torch
     from stable_baselines3 import PPO
 
+    view = view or VIEWS["paper"]
+    src_view = source_view(path)
     src = PPO.load(path, device="cpu").policy.state_dict()
     dst = model.policy.state_dict()
+    n_stack = dst["mlp_extractor.policy_net.0.weight"].shape[1] // view.n_rays
     for k, v in src.items():
-        if k in dst and dst[k].shape != v.shape:
-            if v.ndim == 2 and dst[k].shape[0] == v.shape[0] and dst[k].shape[1] % v.shape[1] == 0:
-                w = torch.zeros_like(dst[k])
-                w[:, : v.shape[1]] = v
-                src[k] = w
-            else:
+        if k in dst and (dst[k].shape != v.shape or (k.endswith("net.0.weight") and src_view != view)):
+            if k.endswith("net.0.weight") and v.shape[1] % src_view.n_rays == 0:
+                src[k] = torch.as_tensor(map_inputs(v.numpy(), src_view, view, n_stack))
+            if src[k].shape != dst[k].shape:
                 raise ValueError(f"--init-from {path}: {k} has shape {tuple(v.shape)}, the model {tuple(dst[k].shape)}")
     if std is not None:
         src["log_std"] = torch.full_like(src["log_std"], float(np.log(std)))

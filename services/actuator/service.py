@@ -152,6 +152,9 @@ class ActuatorService(Service):
         self._start_latch()
         self.controller_alive: bool | None = None
         self.controller_lost = 0
+        self.from_lost = 0
+        """Controller commands refused because its liveliness token is gone (one in flight when
+        it died must not drive again); it is accepted again when the token returns."""
         if self.acfg.follow_liveliness:
             self.watch_alive(self.acfg.controller, self._on_controller_alive)
 
@@ -196,6 +199,8 @@ class ActuatorService(Service):
             if msg.scan_source == "sim" and not self.acfg.sim_scans_drive:
                 self.sim_refused += 1
                 self._record_error(f"refused {channel}: answers a simulator scan (actuator.sim_scans_drive is off)")
+            elif channel == CMD and self.controller_alive is False:
+                self.from_lost += 1
             elif not self.mux.offer(msg, channel, now):
                 self._record_error(f"refused {channel}: source {msg.source!r}")
         self._notify()
@@ -259,7 +264,7 @@ class ActuatorService(Service):
                     frames_sent=self.link.frames_sent if self.link else 0,
                     serial_error=self.link.last_error if self.link else "",
                     controller_alive=getattr(self, "controller_alive", None),
-                    controller_lost=getattr(self, "controller_lost", 0),
+                    controller_lost=getattr(self, "controller_lost", 0), from_lost=getattr(self, "from_lost", 0),
                     latch_file=str(self.latch.path), latch_error=self.latch.error, sim_refused=self.sim_refused,
                     values=self.values, values_age_s=round(time.monotonic() - self._values_t, 3) if self._values_t else None)
 

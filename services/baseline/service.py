@@ -92,11 +92,13 @@ class MpcApfController:
         return False
 
     def act(self, scan: Scan, state: VehicleState | None = None, state_arrival_ns: int = 0,
-            truth: ObstacleStates | None = None) -> tuple[float, float]:
+            truth: ObstacleStates | None = None, ranges: np.ndarray | None = None) -> tuple[float, float]:
         """Normalised action (a_T, a_delta) for ``scan``.
 
         :param state: newest VehicleState (or None), with its monotonic arrival time.
         :param truth: ground-truth obstacles (oracle mode) or None (lidar).
+        :param ranges: the baseline's view of a wider scan (ControllerService.view); None: the
+            scan's ranges.
         """
         if self._episode_boundary(scan, state):
             self._new_episode()
@@ -105,7 +107,7 @@ class MpcApfController:
         if self._anchor:
             self.lane, self._anchor = (x, y, yaw), False
         pose = (x, y, yaw)
-        percept = self.perception.update(scan.ranges, pose, scan.stamp_ns * 1e-9)
+        percept = self.perception.update(scan.ranges if ranges is None else ranges, pose, scan.stamp_ns * 1e-9)
         # everything into the ego frame (ego at the origin, heading 0)
         R = _rot(-yaw)
         origin = np.array([x, y])
@@ -183,7 +185,7 @@ class BaselineService(ControllerService):
         truth = self._latest["truth"][0]
         if self.bcfg.obstacles == "oracle" and truth is None:
             return None  # oracle mode without ground truth: no command (counted as no_action)
-        return self.ctl.act(scan, state, arrival, truth)
+        return self.ctl.act(scan, state, arrival, truth, ranges=self.view(scan))
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "obstacle_source": self.bcfg.obstacles, "solver": self.bcfg.solver,

@@ -118,8 +118,8 @@ def export(name_or_path: str, out_dir: Path, car_name: str = "slash") -> tuple[P
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path, meta_path = out_dir / "model.onnx", out_dir / "model.json"
-    onnx.save(build_onnx(policy, car.lidar), model_path)
-    meta = sidecar(policy, car.lidar, car, str(resolve_policy_path(name_or_path)))
+    onnx.save(build_onnx(policy, policy.lidar), model_path)
+    meta = sidecar(policy, policy.lidar, car, str(resolve_policy_path(name_or_path)))
     meta_path.write_text(json.dumps(meta, indent=2) + "\n")
     return model_path, meta_path
 

@@ -46,13 +46,15 @@ class PolicyService(ControllerService):
 
         pcfg = cfg.policy
         car = load_car(pcfg.car)
-        super().__init__(cfg, "policy", car, pcfg.max_scan_age_s)
+        policy = policy if policy is not None else load_policy(pcfg.model)
+        # the policy's view (metadata "lidar"): a scan holding it is answered (services/controller.py)
+        super().__init__(cfg, "policy", car, pcfg.max_scan_age_s, view=policy.lidar)
         self.model_ref = pcfg.model
-        self.policy = policy if policy is not None else load_policy(pcfg.model)
+        self.policy = policy
         k = self.policy.obs_stack
         if self.policy.obs_dim != k * self.spec.n_rays:
             raise ValueError(f"policy {self.model_ref!r}: expects {self.policy.obs_dim} inputs ({k} scan(s)), "
-                             f"the car's lidar has {self.spec.n_rays} rays")
+                             f"its lidar view has {self.spec.n_rays} rays")
         # a stacked policy (metadata obs_stack > 1) sees the newest k scans, newest first, as in
         # training; a lost scan or a new episode (a stamp gap) restarts the stack
         self.stack = ScanStack(k)
@@ -73,23 +75,24 @@ class PolicyService(ControllerService):
 
     def observe(self, scan: Scan):
         """The observation of a scan, exactly as the training env builds it (reference path)."""
-        return sanitize(scan.ranges, self.spec)
+        return sanitize(self.view(scan), self.spec)
 
     def act(self, scan: Scan) -> tuple[float, float]:
+        ranges = self.view(scan)
         if self.stack.n == 1:
-            return self.fused(scan.ranges)
+            return self.fused(ranges)
         seq, stamp = self._last
         if seq is not None and scan.seq == seq and self.stack.buf is not None:
             return self.fused(self.stack.buf.reshape(-1))  # the same scan again (lockstep republish)
         if seq is None or scan.seq != seq + 1 or scan.stamp_ns - stamp > 1.5 * scan.scan_time * 1e9:
             self.stack.reset()
         self._last = (scan.seq, scan.stamp_ns)
-        return self.fused(self.stack(scan.ranges))
+        return self.fused(self.stack(ranges))
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "model": self.model_ref, "backend": self.backend, "normalize": self.policy.normalize,
                 "n_params": self.policy.n_params, "obs_stack": self.policy.obs_stack,
-                "brake_below": self.policy.brake_below}
+                "brake_below": self.policy.brake_below, "lidar": self.policy.metadata.get("lidar", "paper")}
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:

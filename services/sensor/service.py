@@ -31,12 +31,13 @@ class SensorService(Service):
         self.preprocess_us = 0.0
 
     def setup(self) -> None:
+        from racecav.common.lidar import published_scan
         from racecav.common.vehicle import load_car
         from racecav.services.sensor.preprocess import PreprocessParams, cut_angle_deg
         from racecav.services.sensor.rplidar_driver import RplidarDriver
 
         car = load_car(self.scfg.car)
-        self.spec = car.lidar
+        self.spec = published_scan(car.lidar, self.scfg.scan)
         self.mount_yaw = car.lidar_mount.yaw if self.scfg.mount_yaw_rad is None else self.scfg.mount_yaw_rad
         self.params = PreprocessParams(max_gap_deg=self.scfg.max_gap_deg, spike_abs_m=self.scfg.spike_abs_m,
                                        spike_rel=self.scfg.spike_rel, downsample=self.scfg.downsample)

@@ -41,7 +41,7 @@ from typing import Any
 from racecav.common import keys
 from racecav.common.bus import Service
 from racecav.common.config import Config, ConfigError
-from racecav.common.lidar import make_scan
+from racecav.common.lidar import make_scan, published_scan
 from racecav.common.messages import DriveCommand, Obstacle, ObstacleStates, VehicleState
 from racecav.common.scenario import load_scenario, scenario_names
 from racecav.common.vehicle import load_car
@@ -136,6 +136,9 @@ class SimService(Service):
                          "overruns": 0, "safety_brakes": 0, "safety_verdict_timeouts": 0}
         self.mux = CommandMux.from_config(cfg.actuator, controller=None, timeout_s=self.scfg.watchdog_s)
         self._fed: dict[str, int] = {}
+        self._dead: set[str] = set()
+        """Sources whose liveliness token vanished: their commands are ignored until it returns
+        (a command still in flight when its controller died must not drive again)."""
         self._safety_on = False
         self._judged = threading.Condition()
         self._judged_seq = -1
@@ -150,7 +153,7 @@ class SimService(Service):
     def _make_world(self, scenario):
         from racecav.sim.bullet_world import BulletWorld  # pybullet: only when running
 
-        spec = self.car_params.lidar
+        spec = published_scan(self.car_params.lidar, self.scfg.scan)
         if self.scfg.lidar_range_max is not None:
             spec = type(spec).model_validate({**spec.model_dump(), "range_max": self.scfg.lidar_range_max})
         return BulletWorld(scenario, car=self.car_params, lidar_all=self.scfg.lidar_all, lidar=spec,
@@ -371,14 +374,21 @@ class SimService(Service):
             msg, arrival = box.latest()
             if msg is not None and arrival != self._fed.get(channel):
                 self._fed[channel] = arrival
+                if msg.source in self._dead:
+                    self.counters["from_lost_source"] = self.counters.get("from_lost_source", 0) + 1
+                    continue
                 out.append((when(msg, arrival), channel, msg))
         return out
 
     def _on_alive(self, name: str, alive: bool) -> None:
         """Liveliness callback: the controller whose command is in force died => drop it now
         (as the actuator does), not after watchdog_s."""
+        if alive:
+            self._dead.discard(name)
+            return
+        self._dead.add(name)
         cmd = self.cmd.latest()[0]
-        if not alive and cmd is not None and cmd.source == name:
+        if cmd is not None and cmd.source == name:
             self.mux.lost(keys.CMD)
             self.counters["controller_lost"] = self.counters.get("controller_lost", 0) + 1
 
