@@ -64,7 +64,10 @@ def scan_view(scan: Scan, spec: LidarSpec) -> np.ndarray | None:
         raise ValueError(f"ranges: {n} rays, the policy's lidar has {spec.n_rays}")
     geom = LidarSpec(n_rays=n, fov=scan.angle_increment * (n - 1), angle_min=scan.angle_min,
                      range_min=spec.range_min, range_max=spec.range_max)
-    return view_index(geom, spec, tol=GEOMETRY_TOL)
+    try:
+        return view_index(geom, spec, tol=GEOMETRY_TOL)
+    except ValueError as e:  # the usual cause: a wide-view policy fed the paper's scan
+        raise ValueError(f"{e} (the publisher's scan = \"wide\" holds every view)") from None
 
 
 def make_command(source: str, a_throttle: float, a_steer: float, car: CarParams, scan: Scan,
