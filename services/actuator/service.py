@@ -199,7 +199,7 @@ class ActuatorService(Service):
             if msg.scan_source == "sim" and not self.acfg.sim_scans_drive:
                 self.sim_refused += 1
                 self._record_error(f"refused {channel}: answers a simulator scan (actuator.sim_scans_drive is off)")
-            elif channel == CMD and self.controller_alive is False:
+            elif channel == CMD and self.controller_alive is False and msg.source == self.acfg.controller:
                 self.from_lost += 1
             elif not self.mux.offer(msg, channel, now):
                 self._record_error(f"refused {channel}: source {msg.source!r}")
