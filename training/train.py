@@ -305,14 +305,14 @@ def map_inputs(w, src, dst, n_stack: int, stats: bool = False):
     r_src, r_dst = len(a_src), len(a_dst)
     s_src = w2.shape[1] // r_src
     out = np.zeros((w2.shape[0], n_stack * r_dst), dtype=w2.dtype)
+
     def nearest(a, view):  # ray of ``view`` nearest to angles a; a tie (half-way) goes to the lower
-        x = (a - view.angle_min) / view.angle_increment
-        return np.ceil(x - 0.5 - 1e-3).astype(np.int64), x
+        return np.ceil((a - view.angle_min) / view.angle_increment - 0.5 - 1e-3).astype(np.int64)
 
     if stats:
-        near = np.clip(nearest(a_dst, src)[0], 0, r_src - 1)  # per destination ray
+        near = np.clip(nearest(a_dst, src), 0, r_src - 1)  # per destination ray
     else:
-        near, _ = nearest(a_src, dst)  # per source ray
+        near = nearest(a_src, dst)  # per source ray
         inside = (near >= 0) & (near < r_dst)
         near = np.clip(near, 0, r_dst - 1)
     for k in range(n_stack):
