@@ -6,9 +6,9 @@ class owns what every service must do the same way:
 
 - a Zenoh session from the config (explicit endpoints, multicast scouting off, client of the
   car's router);
-- a liveliness token ``racecav/<car>/<service>/alive``, declared after ``setup()`` (alive means
-  its inputs are subscribed), and a queryable ``racecav/<car>/<service>/status`` answering
-  :class:`ServiceStatus` with the latest outputs;
+- a liveliness token ``racecav/<car>/<service>/alive`` and a queryable
+  ``racecav/<car>/<service>/status`` answering :class:`ServiceStatus` with the latest outputs,
+  both declared after ``setup()`` (alive means set up: inputs subscribed, state loaded);
 - inputs that keep only the newest sample (sensor data: a stale scan is worthless) and are
   decoded and validated in the subscriber callback; invalid payloads are counted and logged
   (rate-limited) and never stop the service;
@@ -390,10 +390,10 @@ class Service:
             where = (f"listen {', '.join(self._listen or [])}" if self._mode == "router"
                      else f"bus.connect {', '.join(self.cfg.bus.connect)}")
             raise ConfigError(f"{self.name}: cannot join the bus ({where}): {zenoh_error(e)}") from None
-        self.queryable("status", lambda _payload: self.status())
         self.setup()
-        # the token last: a service that shows alive has its subscribers declared (a client that
-        # publishes as soon as it sees the token is heard)
+        # status and token last: a service that answers or shows alive is set up (its subscribers
+        # declared, its state loaded), so a client acting on either is heard and told the truth
+        self.queryable("status", lambda _payload: self.status())
         self._declared.append(self.session.liveliness().declare_token(keys.alive_key(self.car, self.name)))
 
     def close(self) -> None:
