@@ -55,7 +55,9 @@ def env_car(settings: EnvConfig):
     from racecav.common.vehicle import load_car
 
     car = load_car(settings.car)
-    update: dict[str, Any] = {"lidar": VIEWS[settings.lidar]}
+    view = VIEWS[settings.lidar]  # its rays; the car's range limits and rate
+    update: dict[str, Any] = {"lidar": car.lidar.model_copy(
+        update={k: getattr(view, k) for k in ("n_rays", "fov", "angle_min")})}
     if settings.control_period_s is not None:
         update["control_period_s"] = settings.control_period_s
     return car.model_copy(update=update)
