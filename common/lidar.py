@@ -69,7 +69,12 @@ def published_scan(car_lidar: LidarSpec, kind: str) -> LidarSpec:
         return car_lidar
     if kind != "wide":
         raise ValueError(f"scan: expected 'paper' or 'wide', got {kind!r}")
-    return car_lidar.model_copy(update={k: getattr(WIDE_SCAN, k) for k in ("n_rays", "fov", "angle_min")})
+    return with_rays(car_lidar, WIDE_SCAN)
+
+
+def with_rays(base: LidarSpec, rays: LidarSpec) -> LidarSpec:
+    """``base`` (a car's lidar: range limits, rate) with the rays of ``rays`` (count, span, start)."""
+    return base.model_copy(update={k: getattr(rays, k) for k in ("n_rays", "fov", "angle_min")})
 
 
 def view_index(scan: LidarSpec, view: LidarSpec, tol: float = 1e-4) -> np.ndarray:
@@ -86,14 +91,6 @@ def view_index(scan: LidarSpec, view: LidarSpec, tol: float = 1e-4) -> np.ndarra
                          f"{view.n_rays} rays from {np.degrees(view.angle_min):.2f} deg every "
                          f"{np.degrees(view.angle_increment):.3f} deg")
     return idx
-
-
-def view_name(spec: LidarSpec) -> str:
-    """The name of a view in VIEWS (ValueError if none matches)."""
-    for k, v in VIEWS.items():
-        if v == spec:
-            return k
-    raise ValueError(f"lidar: {spec} is not a named view ({sorted(VIEWS)})")
 
 
 def ray_angles(spec: LidarSpec | None = None) -> np.ndarray:

@@ -51,13 +51,11 @@ def env_settings(cfg: EnvConfig | None = None, **overrides) -> EnvConfig:
 def env_car(settings: EnvConfig):
     """The car of ``settings`` as the env drives it: its control period and the policy's lidar
     view (EnvConfig.lidar) applied. Both backends take the scan from ``car.lidar``."""
-    from racecav.common.lidar import VIEWS
+    from racecav.common.lidar import VIEWS, with_rays
     from racecav.common.vehicle import load_car
 
     car = load_car(settings.car)
-    view = VIEWS[settings.lidar]  # its rays; the car's range limits and rate
-    update: dict[str, Any] = {"lidar": car.lidar.model_copy(
-        update={k: getattr(view, k) for k in ("n_rays", "fov", "angle_min")})}
+    update: dict[str, Any] = {"lidar": with_rays(car.lidar, VIEWS[settings.lidar])}
     if settings.control_period_s is not None:
         update["control_period_s"] = settings.control_period_s
     return car.model_copy(update=update)
