@@ -191,7 +191,6 @@ def _ppo_kwargs(tc) -> dict:
 
 # ----------------------------------------------------------------------------------- training
 def train(args, cfg) -> int:
-    import numpy as np
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
