@@ -88,9 +88,11 @@ class SensorConfig(Section):
     """Car file (common/data/cars) whose lidar_mount.yaw says where the device's 0 deg points."""
     mount_yaw_rad: float | None = None
     """Override of the car file's lidar_mount.yaw (rad, CCW from the car's heading)."""
-    scan: Literal["paper", "wide"] = "paper"
-    """The scan published: paper = the car's (170 rays over 90 deg); wide = common/lidar.WIDE_SCAN
-    (338 rays over +-89.7 deg, which holds every view: set it for a wide-view policy)."""
+    scan: Literal["paper", "wide"] = "wide"
+    """The scan published: wide = common/lidar.WIDE_SCAN (338 rays over +-89.7 deg at the paper's
+    spacing), which holds every view: the shipped avoid policy's (wide) and the paper's, so every
+    controller takes its own view out of it (services/controller.py); paper = the car's 170 rays
+    over 90 deg only (enough for the paper's policies and MPC-APF, 2x fewer bytes)."""
     reset_wait_s: float = Field(2.0, ge=0)
     """Pause after RESET before talking to the device (Slamtec SDK: about 2 s)."""
     spinup_s: float = Field(0.5, ge=0)
@@ -224,9 +226,11 @@ class SimConfig(Section):
     """Car file (common/data/cars)."""
     lidar_range_max: float | None = Field(None, gt=0)
     """Override the car file's lidar range (m); None = the car's (12 m)."""
-    scan: Literal["paper", "wide"] = "paper"
-    """The scan published: paper = the car's (170 rays over 90 deg); wide = common/lidar.WIDE_SCAN
-    (338 rays over +-89.7 deg, which holds every view: set it for a wide-view policy)."""
+    scan: Literal["paper", "wide"] = "wide"
+    """The scan published: wide = common/lidar.WIDE_SCAN (338 rays over +-89.7 deg at the paper's
+    spacing), which holds every view: the shipped avoid policy's (wide) and the paper's, so every
+    controller takes its own view out of it (services/controller.py); paper = the car's 170 rays
+    over 90 deg only (enough for the paper's policies and MPC-APF, 2x fewer bytes)."""
     publish_obstacles: bool = True
     """Publish ground-truth ObstacleStates every step."""
     lockstep_safety: bool = False

@@ -644,7 +644,7 @@ def record_observations(path: Path, seed: int = 7, scan: str = "paper") -> Path:
 
 ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-progress-stack2", "avoid-progress"),
             ("avoid-traffic", "avoid-progress-stack2"), ("avoid-brake", "avoid-traffic"),
-            ("avoid-curriculum", "avoid-traffic"), ("avoid-wide", "avoid-curriculum"))
+            ("avoid-curriculum", "avoid-traffic"), ("avoid-wide", "avoid-curriculum"), ("avoid-lowlr", "avoid-wide"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -690,7 +690,7 @@ def _ablation_markdown() -> str:
          "--init-from common/data/policies/reversed.zip --init-std 0.4` plus the changes of the rows above and "
          "its own (the change column, relative to the run it builds on; rows 4-5 start from row 3's shipped "
          "checkpoint and row 6 from row 4's, row 7 from row 6's, with `--init-std 0.3`: the avoid policy "
-         "shipped then; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
+         "shipped then; row 8 from row 7's best checkpoint, keeping its action std; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
          "checkpoints are scored by `racecav train select --trials 100` on the selection split only: the "
          "suite's train split with selection seeds in the fast world (suite columns, "
          f"{rows[0][2].get('suite_episodes')} episodes) and, in PyBullet in-process with selection seeds "
