@@ -215,12 +215,14 @@ class ScanStack:
         self.buf = None
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """Push one observation (R,) and return the stack (n * R,)."""
+        """Push one observation (R,) and return the stack (n * R,): a view of the stack's buffer,
+        valid until the next push (copy it to keep it)."""
         obs = np.asarray(obs, dtype=np.float32)
         if self.n == 1:
             return obs
         if self.buf is None or self.buf.shape[1] != obs.shape[0]:
             self.buf = np.repeat(obs[None], self.n, axis=0)
-        else:
-            self.buf = np.concatenate([obs[None], self.buf[:-1]])
+        else:  # in place (the service's hot path: no allocation); numpy handles the overlap
+            self.buf[1:] = self.buf[:-1]
+            self.buf[0] = obs
         return self.buf.reshape(-1)
