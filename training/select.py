@@ -407,7 +407,7 @@ def report(args, cfg) -> int:
     from racecav.common.policy import MODELS_DIR, load_policy
 
     torch.set_num_threads(1)
-    args_reuse.v = args.reuse
+    args_reuse.v = []  # the policies whose stored evaluation is reused
     names = [n for n in args.policies.split(",") if (MODELS_DIR / f"{n}.npz").is_file()]
     results = {}
     t0 = time.time()
@@ -419,6 +419,7 @@ def report(args, cfg) -> int:
         if (args.reuse and stored.get("trials") == args.trials
                 and (REPO / "docs" / "img" / f"training_paths_{name}.png").is_file()):
             results[name] = stored
+            args_reuse.v.append(name)
             continue
         res = {"trials": args.trials, "seed0": REPORT_SEED, "backend": "pybullet"}
         paths = {}
@@ -520,8 +521,8 @@ def _plot_curves() -> dict[str, dict]:
     return stats
 
 
-class args_reuse:  # set by report(): the page says whether results were reused
-    v = False
+class args_reuse:  # set by report(): the page says which results were reused
+    v: list[str] = []
 
 
 def _markdown(results: dict, curves: dict, eval_s: float) -> str:
@@ -575,7 +576,8 @@ def _markdown(results: dict, curves: dict, eval_s: float) -> str:
         L.append(f"| {name} | {meta.get('run')} {meta.get('training_steps', 0) / 1e6:.2f} M | {res['trials']} | "
                  f"{succ} | {cont} % | {short} % |")
     L += ["", f"Evaluation wall time of this report: {eval_s / 60:.1f} min"
-          + (" (results reused from the policies' metadata, measured at the time shown there)." if getattr(args_reuse, "v", False) else "."), ""]
+          + (f" ({', '.join(args_reuse.v)}: results reused from the policies' metadata, measured at the time "
+             "shown there)." if getattr(args_reuse, "v", None) else "."), ""]
     for name in results:
         if (REPO / "docs" / "img" / f"training_paths_{name}.png").is_file():
             L += [f"![{name} paths](img/training_paths_{name}.png)", ""]
