@@ -235,6 +235,9 @@ def select(args, cfg) -> int:
         if conflict:  # avoidance runs: the suite's train split and the conflict-timed paper scenarios
             fields += [f"{s}_success" for s in CONFLICT_SCENARIOS] + ["conflict_success", "suite_success",
                                                                        "suite_episodes", "score"]
+            # the per-family columns of rows already evaluated: a run that evaluates nothing new
+            # must not drop them
+            fields += sorted({k for r in done.values() for k in r if k.startswith("suite_") and k not in fields})
     rows = []
     for ck in tqdm(picked, desc=f"select {run_dir.name}", unit="ckpt"):
         n = _step(ck)
