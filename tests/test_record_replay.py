@@ -206,13 +206,17 @@ def test_eval_record_writes_one_file_per_trial(tmp_path):
 
 def test_real_sensor_scans_are_restamped(spawn, session, router, tmp_path):
     """Scans recorded from the real sensor carry that host's (old) monotonic stamps: replay
-    re-stamps them as it sends them, or the policy would drop every one as stale."""
+    re-stamps them as it sends them, or the policy would drop every one as stale. The sensor's
+    default scan (wide) holds the default policy's view."""
     import json
+
+    from racecav.common.lidar import WIDE_SCAN, make_scan
 
     path = tmp_path / "real.mcap"
     w = RunWriter(path, "car0")
     for i in range(20):
-        old = _scan(i).model_copy(update={"source": "real", "stamp_ns": 1_000 + i * 100_000_000})
+        old = make_scan(np.linspace(0.5, 11.0, WIDE_SCAN.n_rays, dtype=np.float32), 1_000 + i * 100_000_000, i,
+                        "real", WIDE_SCAN)
         w.write("racecav/car0/scan", encode(old))
     w.close()
     pol = spawn("policy")
