@@ -95,9 +95,12 @@ class Family(_Strict):
     kind: Literal["crossing", "head_on", "turning", "braking", "stopped", "staggered"]
     world: str
     weight: float = Field(1.0, gt=0)
-    timing: Literal["ego", "clock"] = "ego"
+    timing: Literal["ego", "clock", "paper"] = "ego"
     """ego: started and synchronised by the ego (a conflict at any ego speed); clock: starts
-    after ``common.start_s`` at its constant speed (may or may not conflict)."""
+    after ``common.start_s`` at its constant speed (may or may not conflict); paper: the paper's
+    Table 1 timing, constant speed, reaching the conflict point when an ego holding its start
+    speed does, ``common.start_s`` later (a faster or evading ego may pass; crossing and
+    head-on kinds only)."""
     side: Literal["right", "left", "either"] = "either"
     angle_deg: Range = (45.0, 135.0)
     lateral_offset_m: Range = (-0.5, 0.5)
@@ -116,6 +119,8 @@ class Family(_Strict):
             raise ValueError("brake_decel: must be positive")
         if not self.variants:
             raise ValueError("variants: at least one")
+        if self.timing == "paper" and self.kind not in ("crossing", "head_on"):
+            raise ValueError(f"timing = \"paper\": crossing or head_on kinds only, not {self.kind!r}")
         return self
 
 
@@ -201,7 +206,7 @@ def _actor(x, y, yaw, speed, path=(), start=None, sync=None, changes=()) -> dict
 def _timing(rng, c: Common, f: Family, ego_pt, actor_pt, dist: float, v_nom: float) -> tuple[dict, dict | None]:
     """Start trigger (the ego's time to arrival at its point = the actor's nominal time to its
     point) and synchronised arrival of one actor; for a clock-timed family a start delay only."""
-    if f.timing == "clock":
+    if f.timing in ("clock", "paper"):
         return {"kind": "time", "value": _r(_u(rng, c.start_s))}, None
     start = {"kind": "time_to_arrival", "point": _pt(ego_pt), "value": _r(dist / v_nom)}
     sync = {"ego_point": _pt(ego_pt), "actor_point": _pt(actor_pt),
@@ -211,13 +216,22 @@ def _timing(rng, c: Common, f: Family, ego_pt, actor_pt, dist: float, v_nom: flo
     return start, sync
 
 
-def _crossing_actor(rng, c: Common, f: Family, p, side: str, angle_deg: float, changes=False) -> dict:
+def _paper_speed(f: Family, dist: float, v: float, t_meet: float) -> float:
+    """The actor's speed under the paper's timing: it covers ``dist`` in the time an ego holding
+    its start speed needs to its point (``t_meet``), so its start delay makes it that much late
+    (the paper's 0-0.3 s); other timings keep ``v``."""
+    return dist / t_meet if f.timing == "paper" else v
+
+
+def _crossing_actor(rng, c: Common, f: Family, p, side: str, angle_deg: float, changes=False,
+                    t_meet: float = 0.0) -> dict:
     th = math.radians(angle_deg)
     d = np.array([math.cos(th), math.sin(th) if side == "right" else -math.sin(th)])
     dist = _u(rng, c.obstacle_distance_m)
     v = _u(rng, c.obstacle_speed)
     s0 = np.asarray(p) - dist * d
     start, sync = _timing(rng, c, f, p, p, dist, v)
+    v = _paper_speed(f, dist, v, t_meet)
     chg = ()
     if changes:  # brake to a stop with the centre stop_distance before the ego's path
         dec = _u(rng, f.brake_decel)
@@ -235,8 +249,9 @@ def draw(rng: np.random.Generator, c: Common, f: Family) -> Draw:
     p = (0.0, y0)
     side = f.side if f.side != "either" else ("right" if rng.random() < 0.5 else "left")
     obs: list[dict] = []
+    t_meet = de / ego["speed"]  # the paper's timing: when an ego holding its start speed arrives
     if f.kind == "crossing":
-        obs.append(_crossing_actor(rng, c, f, p, side, _u(rng, f.angle_deg)))
+        obs.append(_crossing_actor(rng, c, f, p, side, _u(rng, f.angle_deg), t_meet=t_meet))
     elif f.kind == "braking":
         obs.append(_crossing_actor(rng, c, f, p, side, _u(rng, f.angle_deg), changes=True))
     elif f.kind == "head_on":
@@ -245,7 +260,9 @@ def draw(rng: np.random.Generator, c: Common, f: Family) -> Draw:
         s0 = np.array([dist, y0 + off])
         d = (np.asarray(p) - s0) / np.hypot(*(np.asarray(p) - s0))
         v = _u(rng, c.obstacle_speed)
-        start, sync = _timing(rng, c, f, p, p, float(np.hypot(*(np.asarray(p) - s0))), v)
+        path_len = float(np.hypot(*(np.asarray(p) - s0)))
+        start, sync = _timing(rng, c, f, p, p, path_len, v)
+        v = _paper_speed(f, path_len, v, t_meet)
         obs.append(_actor(s0[0], s0[1], math.atan2(d[1], d[0]), v, start=start, sync=sync))
     elif f.kind == "turning":
         variant = f.variants[int(rng.integers(len(f.variants)))]
@@ -290,6 +307,8 @@ def scenario_data(d: Draw, c: Common, f: Family, name: str) -> dict:
         "name": name,
         "description": (f"conflict suite, family {f.name} ({f.kind}): timed by the ego; "
                         "a non-evading ego collides at 1 m/s and at full throttle") if f.timing == "ego" else
+                       (f"traffic, family {f.name} ({f.kind}): timed like the paper's Table 1 (meets an ego "
+                        "holding its start speed); a faster or evading ego may pass") if f.timing == "paper" else
                        f"traffic, family {f.name} ({f.kind}): timed by the clock; may or may not conflict",
         "world": f.world,
         "duration_s": _r(d.ego_distance / 0.6 + c.margin_s),
