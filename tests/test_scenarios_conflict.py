@@ -190,6 +190,43 @@ def test_generation_is_reproducible(small_suite, tmp_path):
         assert f.read_text().split("\n", 1)[1] == (tmp_path / "test" / f.name).read_text().split("\n", 1)[1]
 
 
+def test_paper_timed_family_meets_an_ego_holding_its_start_speed(tmp_path):
+    """timing = "paper": each actor reaches its conflict point when the ego at its start speed
+    does, its start delay later; so a straight ego at its start speed collides with the crossing
+    cars, while full throttle passes ahead of them (the paper's side scenarios)."""
+    from racecav.common.scenario import scenario_sources
+
+    ff = S.load_families("paper-timed")
+    man = S.generate(ff, tmp_path, n_test=3, n_train=24, seed=5, progress=False)
+    assert {e["family"] for e in man["splits"]["train"]} == {"cross-left", "cross-right", "head-on"}
+    crossings = []
+    for f, fam in scenario_sources(tmp_path, "train"):
+        sc = load_scenario(f)
+        ego, (o,) = sc.ego, sc.obstacles
+        t_ego = -ego.x / ego.speed  # its conflict point is at x = 0
+        t_actor = math.hypot(o.x, o.y - ego.y) / o.speed + o.start.value
+        assert o.start.kind == "time" and 0.0 <= o.start.value <= 0.3
+        assert t_actor == pytest.approx(t_ego + o.start.value, abs=0.01), f.name
+        if not fam.endswith("head-on"):
+            crossings.append(sc)
+    full_throttle = S.straight_collisions(crossings, speeds=(None,), trials=2, seed=3)
+    assert not full_throttle.any(), full_throttle
+    # the same files with the actor delay removed, against a straight ego at exactly its start speed
+    at_start = [sc.model_copy(update={"randomize": sc.randomize.model_copy(update={
+        "ego_speed": 0.0, "ego_xy": 0.0, "ego_yaw_deg": 0.0, "obstacle_xy": 0.0, "obstacle_yaw_deg": 0.0})})
+        for sc in crossings]
+    hits = [S.straight_collisions([sc], speeds=(sc.ego.speed,), trials=1, seed=3)[0, 0] for sc in at_start]
+    assert all(hits), hits
+
+
+def test_paper_timing_is_for_crossing_and_head_on_kinds(tmp_path):
+    text = (S.SUITES_DIR / "paper-timed.toml").read_text()
+    p = tmp_path / "fam.toml"
+    p.write_text(text.replace('kind = "head_on"', 'kind = "stopped"', 1))
+    with pytest.raises(ValueError, match="timing"):
+        S.load_families(p)
+
+
 @pytest.mark.parametrize("edit,field", [
     ('angle_deg = [45.0, 135.0]       # actor heading', "angle_deg"),
     ('kind = "crossing"', "kind"),
