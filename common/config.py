@@ -335,6 +335,10 @@ class EnvConfig(Section):
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
     More than one shows motion; the policy service stacks the same way (policy metadata)."""
+    obs_stride: int = Field(1, ge=1, le=10)
+    """The stacked scans are this many control periods apart (1: consecutive scans). A longer
+    baseline shows slow bearing changes: a crossing car that will pass drifts by less than one
+    wide ray between consecutive scans (0.1 s), by a few over 0.4 s."""
     progress_reward: float = Field(0.0, ge=0)
     """Reward per metre of progress (along the centerline in the agent's direction, or along a
     scenario ego's initial heading), added to 5 T^2. 0: the paper's reward. ~18.5 matches 5 T^2

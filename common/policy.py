@@ -58,6 +58,10 @@ class NumpyPolicy:
         """Scans per observation, newest first (1: the paper's single scan)."""
         if self.obs_stack < 1 or self.obs_dim % self.obs_stack:
             raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the input size {self.obs_dim}")
+        self.obs_stride = int(self.metadata.get("obs_stride", 1))
+        """Scan periods between the stacked scans (1: consecutive)."""
+        if self.obs_stride < 1:
+            raise ValueError(f"policy metadata: obs_stride {self.obs_stride} must be >= 1")
         from racecav.common.lidar import VIEWS
 
         view = self.metadata.get("lidar", "paper")
@@ -201,28 +205,35 @@ def export_policy(sb3_model, path: str | Path, metadata: dict[str, Any] | None =
 
 
 class ScanStack:
-    """The newest ``n`` observations of one car, newest first, as the training env stacks them:
-    after a reset (or a gap: a lost scan, a new episode) the stack is filled with the current one.
+    """``n`` observations of one car, ``stride`` scans apart, newest first, as the training env
+    stacks them: after a reset (or a gap: a lost scan, a new episode) the history is filled with
+    the current one.
 
     :param n: scans per observation (a policy's ``obs_stack``).
+    :param stride: scan periods between them (a policy's ``obs_stride``; 1: consecutive).
     """
 
-    def __init__(self, n: int):
-        self.n = int(n)
+    def __init__(self, n: int, stride: int = 1):
+        self.n, self.stride = int(n), int(stride)
         self.buf: np.ndarray | None = None
+        """The newest (n - 1) * stride + 1 observations, newest first."""
 
     def reset(self) -> None:
         self.buf = None
 
+    def current(self) -> np.ndarray:
+        """The stack after the last push (n * R,)."""
+        return self.buf[::self.stride].reshape(-1) if self.stride > 1 else self.buf.reshape(-1)
+
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """Push one observation (R,) and return the stack (n * R,): a view of the stack's buffer,
-        valid until the next push (copy it to keep it)."""
+        """Push one observation (R,) and return the stack (n * R,): for stride 1 a view of the
+        stack's buffer, valid until the next push (copy it to keep it)."""
         obs = np.asarray(obs, dtype=np.float32)
         if self.n == 1:
             return obs
         if self.buf is None or self.buf.shape[1] != obs.shape[0]:
-            self.buf = np.repeat(obs[None], self.n, axis=0)
+            self.buf = np.repeat(obs[None], (self.n - 1) * self.stride + 1, axis=0)
         else:  # in place (the service's hot path: no allocation); numpy handles the overlap
             self.buf[1:] = self.buf[:-1]
             self.buf[0] = obs
-        return self.buf.reshape(-1)
+        return self.current()

@@ -237,7 +237,7 @@ class OvertakeEnv(gym.Env):
         from racecav.common.policy import ScanStack
 
         if self._stack is None or fresh:
-            self._stack = ScanStack(self.n_stack)
+            self._stack = ScanStack(self.n_stack, self.settings.obs_stride)
         return self._stack(obs).copy()
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):

@@ -73,7 +73,7 @@ def run(args, cfg) -> int:
 
 # ----------------------------------------------------------------------------------- evaluation
 def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: float | None = None,
-                           lidar: str = "paper"):
+                           lidar: str = "paper", obs_stride: int = 1):
     """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present); the
     arguments are the run's env settings its metadata records (EnvConfig)."""
     import pickle
@@ -90,7 +90,8 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: floa
             norm = pickle.load(f)
         arrays.update(obs_mean=norm.obs_rms.mean, obs_var=norm.obs_rms.var,
                       obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
-    return NumpyPolicy(arrays, {"obs_stack": obs_stack, "brake_below": brake_below, "lidar": lidar})
+    return NumpyPolicy(arrays, {"obs_stack": obs_stack, "obs_stride": obs_stride, "brake_below": brake_below,
+                                "lidar": lidar})
 
 
 def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
@@ -173,7 +174,7 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
     dur = bw.scenario.duration_s
     ok = contact = 0
     prog, paths = [], []
-    stack = ScanStack(getattr(policy, "obs_stack", 1))
+    stack = ScanStack(getattr(policy, "obs_stack", 1), getattr(policy, "obs_stride", 1))
     try:
         for k in range(trials):
             obs = bw.reset(seed=seed0 + k)
@@ -245,7 +246,7 @@ def select(args, cfg) -> int:
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
             rows.append(prev)
             continue
-        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar)
+        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar, tc.env.obs_stride)
         row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, tc.env, args.episodes)}
         if not args.no_intersection:
             rates = []
@@ -372,11 +373,11 @@ def ship(args, cfg) -> int:
             "seed": tc.seed, "settings": tc.model_dump(mode="json"), "git_commit_training": record.get("git_commit"),
             "git_commit_export": git_commit(),
             "run_total_steps": latest.get("timesteps"), "run_wall_s": latest.get("wall_s"),
-            "selection": evals.get(n), "obs_stack": tc.env.obs_stack,
+            "selection": evals.get(n), "obs_stack": tc.env.obs_stack, "obs_stride": tc.env.obs_stride,
             "lidar": tc.env.lidar,
             "observation": (f"sanitised lidar ranges (common/lidar.sanitize), the {tc.env.lidar!r} view "
                             f"(common/lidar.VIEWS, {VIEWS[tc.env.lidar].n_rays} rays), m"
-                            + (f"; the newest {tc.env.obs_stack} scans, newest first"
+                            + (f"; {tc.env.obs_stack} scans {tc.env.obs_stride} scan period(s) apart, newest first"
                                if tc.env.obs_stack > 1 else "")),
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"
                       + (f"; a_T < {tc.env.brake_below} brakes" if tc.env.brake_below is not None else ""),
@@ -672,7 +673,7 @@ def _ablation_markdown() -> str:
         best["_last_score"] = max(evals, key=lambda r: int(r["timesteps"]))["score"]
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
-                "progress_reward", "obs_stack", "contact_penalty", "scenarios", "scenario_share", "brake_below",
+                "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
                 "curriculum", "lidar") if getattr(prev.env, k) != getattr(tc.env, k)]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("learning_rate", "ent_coef")
                if getattr(prev, k) != getattr(tc, k)]) or "-"

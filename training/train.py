@@ -46,7 +46,8 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
-             "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "contact_penalty": "--contact-penalty",
+             "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
+             "contact_penalty": "--contact-penalty",
              "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
              "lidar": "--lidar"}
 """EnvConfig fields that are flags (field -> flag)."""
@@ -250,7 +251,7 @@ def train(args, cfg) -> int:
     else:
         model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         if tc.init_from:
-            init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar])
+            init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     remaining = total - model.num_timesteps
@@ -272,15 +273,35 @@ def train(args, cfg) -> int:
     return 0
 
 
-def source_view(path: Path):
-    """The lidar view a policy zip was trained on: its metadata (a shipped policy's .json), else
-    its run's config.json (a checkpoint), else the paper's."""
+def _source_env(path: Path, key: str, default):
+    """An env setting a policy zip was trained with: its metadata (a shipped policy's .json),
+    else its run's config.json (a checkpoint), else ``default``."""
     meta = path.with_suffix(".json")
-    if meta.is_file() and "lidar" in (m := json.loads(meta.read_text())):
-        return VIEWS[m["lidar"]]
+    if meta.is_file() and key in (m := json.loads(meta.read_text())):
+        return m[key]
     if (path.parent.parent / "config.json").is_file():
-        return VIEWS[load_run_config(path.parent.parent)[0].env.lidar]
-    return VIEWS["paper"]
+        return getattr(load_run_config(path.parent.parent)[0].env, key)
+    return default
+
+
+def source_view(path: Path):
+    """The lidar view a policy zip was trained on (the paper's unless it says otherwise)."""
+    return VIEWS[_source_env(path, "lidar", "paper")]
+
+
+def restride(w, n_rays: int, k: float):
+    """First-layer weights (out, S * R) of a stack trained with scans ``s`` periods apart, for
+    scans ``k * s`` apart. Each older scan is read as a linear interpolation between the newest
+    and the farther one (s_old ~ (1 - 1/k) s_new + s_far / k), so the model starts with the old
+    response to motion, then learns from the longer baseline."""
+    import numpy as np
+
+    w = np.array(w, dtype=np.float64)
+    for j in range(1, w.shape[1] // n_rays):
+        old = w[:, j * n_rays:(j + 1) * n_rays].copy()
+        w[:, :n_rays] += old * (1.0 - 1.0 / k)
+        w[:, j * n_rays:(j + 1) * n_rays] = old / k
+    return w
 
 
 def map_inputs(w, src, dst, n_stack: int, stats: bool = False):
@@ -326,11 +347,12 @@ def map_inputs(w, src, dst, n_stack: int, stats: bool = False):
     return out[0] if stats else out
 
 
-def init_weights(model, path: Path, std: float | None = None, view=None) -> None:
+def init_weights(model, path: Path, std: float | None = None, view=None, stride: int = 1) -> None:
     """Start ``model``'s policy from an SB3 zip. A first layer for other inputs (a 1-scan policy
-    into a stacked observation, the paper's view into a wider one) is mapped by map_inputs, so
-    the new model starts with the old behaviour. ``std``: reset the action std to this.
-    ``view``: the model's lidar view (default the paper's)."""
+    into a stacked observation, the paper's view into a wider one, a stack with another stride)
+    is mapped by map_inputs and restride, so the new model starts with the old behaviour.
+    ``std``: reset the action std to this. ``view``: the model's lidar view (default the
+    paper's); ``stride``: its scan periods between stacked scans."""
     import numpy as np
     import torch
     from stable_baselines3 import PPO
@@ -346,6 +368,10 @@ def init_weights(model, path: Path, std: float | None = None, view=None) -> None
                 src[k] = torch.as_tensor(map_inputs(v.numpy(), src_view, view, n_stack))
             if src[k].shape != dst[k].shape:
                 raise ValueError(f"--init-from {path}: {k} has shape {tuple(v.shape)}, the model {tuple(dst[k].shape)}")
+    src_stride = int(_source_env(path, "obs_stride", 1))
+    if src_stride != stride:
+        for k in [k for k in src if k.endswith("net.0.weight")]:
+            src[k] = torch.as_tensor(restride(src[k].numpy(), view.n_rays, stride / src_stride), dtype=src[k].dtype)
     if std is not None:
         src["log_std"] = torch.full_like(src["log_std"], float(np.log(std)))
     model.policy.load_state_dict(src, strict=True)

@@ -101,7 +101,7 @@ class FastVecEnv(VecEnv):
         self.world = self.worlds[0]
         n = sum(w.n_envs for w in self.worlds)
         spec = self.world.spec
-        self.n_stack = self.settings.obs_stack
+        self.n_stack, self.stride = self.settings.obs_stack, self.settings.obs_stride
         obs_space = gym.spaces.Box(spec.range_min, spec.range_max, (self.n_stack * spec.n_rays,), np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
@@ -113,7 +113,8 @@ class FastVecEnv(VecEnv):
             self.is_scenario[sl] = w.actors is not None
         self.a_prev = np.zeros(n, dtype=np.float64)
         self._actions = np.zeros((n, 2))
-        self._stack = np.zeros((n, self.n_stack, spec.n_rays), np.float32)
+        # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
+        self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
         self.curriculum = FamilyCurriculum(self.worlds) if self.settings.curriculum and self.is_scenario.any() else None
         if seed is not None:
             self.seed(seed)
@@ -136,8 +137,8 @@ class FastVecEnv(VecEnv):
         return self._stacked()
 
     def _stacked(self) -> np.ndarray:
-        """The observations: each world's newest ``n_stack`` scans, newest first, flattened."""
-        return self._stack.reshape(self.num_envs, -1).copy() if self.n_stack > 1 else self._stack[:, 0].copy()
+        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened."""
+        return self._stack[:, ::self.stride].reshape(self.num_envs, -1).copy() if self.n_stack > 1 else self._stack[:, 0].copy()
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)

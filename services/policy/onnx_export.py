@@ -79,9 +79,9 @@ def sidecar(policy: NumpyPolicy, spec: LidarSpec, car, source: str) -> dict:
         "format": "racecav.policy.onnx", "version": 1, "source": source, "opset": OPSET,
         "input": {"name": INPUT, "shape": ["batch", policy.obs_dim], "dtype": "float32",
                   "meaning": "Scan.ranges as published on racecav/<car>/scan (metres, +inf = no return); a policy "
-                             "trained on a stack takes the newest `stack` scans concatenated, newest first "
-                             "(restart the stack with the current scan after a gap)",
-                  "stack": policy.obs_stack,
+                             "trained on a stack takes `stack` scans `stride` scan periods apart concatenated, newest "
+                             "first (restart the stack with the current scan after a gap)",
+                  "stack": policy.obs_stack, "stride": policy.obs_stride,
                   "rays": {"n": spec.n_rays, "angle_min": spec.angle_min, "angle_max": spec.angle_max,
                            "angle_increment": spec.angle_increment, "order": "counter-clockwise, index 0 = rightmost",
                            "frame": "laser (REP-103: x forward, y left)"},

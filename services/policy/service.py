@@ -57,7 +57,7 @@ class PolicyService(ControllerService):
                              f"its lidar view has {self.spec.n_rays} rays")
         # a stacked policy (metadata obs_stack > 1) sees the newest k scans, newest first, as in
         # training; a lost scan or a new episode (a stamp gap) restarts the stack
-        self.stack = ScanStack(k)
+        self.stack = ScanStack(k, self.policy.obs_stride)
         # trained with a brake action (EnvConfig.brake_below): a_T below it brakes, as in training
         self.brake_below = self.policy.brake_below
         self._last = (None, 0)  # (seq, stamp_ns) of the previous scan answered
@@ -83,7 +83,7 @@ class PolicyService(ControllerService):
             return self.fused(ranges)
         seq, stamp = self._last
         if seq is not None and scan.seq == seq and self.stack.buf is not None:
-            return self.fused(self.stack.buf.reshape(-1))  # the same scan again (lockstep republish)
+            return self.fused(self.stack.current())  # the same scan again (lockstep republish)
         if seq is None or scan.seq != seq + 1 or scan.stamp_ns - stamp > 1.5 * scan.scan_time * 1e9:
             self.stack.reset()
         self._last = (scan.seq, scan.stamp_ns)
@@ -92,6 +92,7 @@ class PolicyService(ControllerService):
     def info(self) -> dict[str, Any]:
         return {**super().info(), "model": self.model_ref, "backend": self.backend, "normalize": self.policy.normalize,
                 "n_params": self.policy.n_params, "obs_stack": self.policy.obs_stack,
+                "obs_stride": self.policy.obs_stride,
                 "brake_below": self.policy.brake_below, "lidar": self.policy.metadata.get("lidar", "paper")}
 
 
