@@ -647,7 +647,7 @@ def record_observations(path: Path, seed: int = 7, scan: str = "paper") -> Path:
 ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-progress-stack2", "avoid-progress"),
             ("avoid-traffic", "avoid-progress-stack2"), ("avoid-brake", "avoid-traffic"),
             ("avoid-curriculum", "avoid-traffic"), ("avoid-wide", "avoid-curriculum"), ("avoid-lowlr", "avoid-wide"),
-            ("avoid-stack3", "avoid-wide"))
+            ("avoid-stack3", "avoid-wide"), ("avoid-papertimed", "avoid-wide"), ("avoid-stride", "avoid-papertimed"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
