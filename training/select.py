@@ -694,7 +694,7 @@ def _ablation_markdown() -> str:
          "--init-from common/data/policies/reversed.zip --init-std 0.4` plus the changes of the rows above and "
          "its own (the change column, relative to the run it builds on; rows 4-5 start from row 3's shipped "
          "checkpoint and row 6 from row 4's, row 7 from row 6's, with `--init-std 0.3`: the avoid policy "
-         "shipped then; rows 8-9 from row 7's best checkpoint, keeping its action std; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
+         "shipped then; rows 8-12 from row 7's best checkpoint (the shipped avoid), keeping its action std; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
          "checkpoints are scored by `racecav train select --trials 100` on the selection split only: the "
          "suite's train split with selection seeds in the fast world (suite columns, "
          f"{rows[0][2].get('suite_episodes')} episodes) and, in PyBullet in-process with selection seeds "
@@ -802,7 +802,16 @@ def _ablation_markdown() -> str:
           "but from 16 M samples on the conflict-timed left-to-right falls to 27-46 % and the head-on to "
           "39-62 %, scores 0.72-0.86. Stopped at 21 M, rejected. With the paper-timed cars in the mix the "
           "policy gives up the conflicts it had learnt instead of telling the two timings apart, with or "
-          "without the longer baseline, within these budgets.", ""]
+          "without the longer baseline, within these budgets. Row 12 (avoid-wide-stride) adds the longer "
+          "baseline alone to row 7 (`--obs-stride 4`, row 7's mix `--scenarios conflicts,traffic`), "
+          "from row 7's shipped checkpoint. It keeps the conflicts better than rows 10-11 but does not "
+          "reach row 7: from 3 M samples on, conflict-timed 92-100 / 63-89 / 80-95 %, the suite's train "
+          "split 81-88 %, paper-timed 97-100 / 77-97 / 33-66 %; scores 0.80-0.87 up to 26 M (47 min). "
+          "Stopped, rejected; resumable (`racecav train overtake --resume --run-dir runs/avoid-wide-stride "
+          "--steps 60e6`, its latest checkpoint is in training/checkpoints/avoid-wide-stride). Row 7 needed "
+          "52 M samples for its best checkpoint (0.92), whose neighbours scored 0.80-0.89. Rows 8-12 all "
+          "start from that checkpoint, and none of their 78 evaluated checkpoints scores above it (their "
+          "best: 0.91, 0.89, 0.91, 0.86, 0.87).", ""]
     for run, *_ in rows:
         if (COMMITTED / run / "eval.png").is_file():
             img = REPO / "docs" / "img" / f"training_eval_{run}.png"
