@@ -205,7 +205,8 @@ def _actor(x, y, yaw, speed, path=(), start=None, sync=None, changes=()) -> dict
 
 def _timing(rng, c: Common, f: Family, ego_pt, actor_pt, dist: float, v_nom: float) -> tuple[dict, dict | None]:
     """Start trigger (the ego's time to arrival at its point = the actor's nominal time to its
-    point) and synchronised arrival of one actor; for a clock-timed family a start delay only."""
+    point) and synchronised arrival of one actor; for a clock- or paper-timed family a start
+    delay only."""
     if f.timing in ("clock", "paper"):
         return {"kind": "time", "value": _r(_u(rng, c.start_s))}, None
     start = {"kind": "time_to_arrival", "point": _pt(ego_pt), "value": _r(dist / v_nom)}

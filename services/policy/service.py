@@ -55,8 +55,8 @@ class PolicyService(ControllerService):
         if self.policy.obs_dim != k * self.spec.n_rays:
             raise ValueError(f"policy {self.model_ref!r}: expects {self.policy.obs_dim} inputs ({k} scan(s)), "
                              f"its lidar view has {self.spec.n_rays} rays")
-        # a stacked policy (metadata obs_stack > 1) sees the newest k scans, newest first, as in
-        # training; a lost scan or a new episode (a stamp gap) restarts the stack
+        # a stacked policy (metadata obs_stack > 1) sees k scans obs_stride apart, newest first, as
+        # in training; a lost scan or a new episode (a stamp gap) restarts the stack
         self.stack = ScanStack(k, self.policy.obs_stride)
         # trained with a brake action (EnvConfig.brake_below): a_T below it brakes, as in training
         self.brake_below = self.policy.brake_below
