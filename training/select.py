@@ -784,7 +784,7 @@ def _ablation_markdown() -> str:
           "paper's Table 1 (`racecav suite generate --name paper-timed --n 40 --n-train 600 --seed 2`, "
           "common/data/suites/paper-timed.toml, docs/world.md: crossing and head-on cars at a constant "
           "speed that brings them to the conflict point when an ego holding its start speed gets there, "
-          "0-0.3 s late; a straight ego at full throttle passes ahead of every crossing car), with "
+          "0-0.3 s late; a straight ego at full throttle passes ahead of the crossing cars), with "
           "`--scenarios conflicts,traffic,paper-timed`, from row 7's shipped checkpoint (avoid.zip, its "
           "52 M step) and its action std. Its first checkpoints stay near row 7 (0.89 and 0.91 at 1-2 M "
           "samples: suite 90, conflict-timed 100 / 79 / 93, paper-timed 100 / 99 / 79), then it falls to "
@@ -808,7 +808,7 @@ def _ablation_markdown() -> str:
           "reach row 7: from 3 M samples on, conflict-timed 92-100 / 63-89 / 80-95 %, the suite's train "
           "split 81-88 %, paper-timed 97-100 / 77-97 / 33-66 %; scores 0.80-0.87 up to 26 M (47 min). "
           "Stopped, rejected; resumable (`racecav train overtake --resume --run-dir runs/avoid-wide-stride "
-          "--steps 60e6`, its latest checkpoint is in training/checkpoints/avoid-wide-stride). Row 7 needed "
+          "--steps 60e6` after copying training/checkpoints/avoid-wide-stride to runs/, as above). Row 7 needed "
           "52 M samples for its best checkpoint (0.92), whose neighbours scored 0.80-0.89. Rows 8-12 all "
           "start from that checkpoint, and none of their 78 evaluated checkpoints scores above it (their "
           "best: 0.91, 0.89, 0.91, 0.86, 0.87).", ""]
