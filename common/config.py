@@ -359,8 +359,9 @@ class TrainConfig(Section):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, use_attribute_docstrings=True)
 
-    stage: Literal["racing", "overtake"] = "overtake"
-    """racing: stage 1 on the empty track; overtake: stage 2 among obstacle cars (and scenarios)."""
+    stage: Literal["racing", "overtake", "dagger"] = "overtake"
+    """racing: stage 1 on the empty track; overtake: stage 2 among obstacle cars (and scenarios);
+    dagger: the overtake env, the policy imitating a privileged planner (training/dagger.py)."""
     preset: Literal["paper", "fast"] = "paper"
     """The preset the run started from (TRAIN_PRESETS)."""
     seed: int = Field(0, ge=0)
@@ -395,6 +396,16 @@ class TrainConfig(Section):
     """With init_from: reset the action std to this (a converged policy explores too little)."""
     env: EnvConfig = EnvConfig(n_envs=1)
     """The training env (heading, obstacles, traffic driver, world, scenarios, observation...)."""
+    # dagger stage only (training/dagger.py)
+    expert_share: float = Field(0.0, ge=0, le=1)
+    """dagger: share of the episodes the planner drives (DAgger's beta); the policy drives the
+    rest. Every step is labelled with the planner's action either way."""
+    expert_horizon_s: float = Field(2.5, gt=0)
+    """dagger: the planner's look-ahead (s)."""
+    grad_steps: int = Field(400, ge=1)
+    """dagger: gradient steps (minibatches of batch_size) after each rollout."""
+    dataset_max: int = Field(1_500_000, ge=1)
+    """dagger: labelled samples kept (the newest; the aggregate is not checkpointed)."""
 
 
 TRAIN_PRESETS: dict[str, dict] = {

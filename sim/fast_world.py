@@ -311,11 +311,12 @@ class FastWorld:
         self._scan(np.array([env]))
 
     # ------------------------------------------------------------------ stepping
-    def step(self, actions, brake=None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
+    def step(self, actions, brake=None, observe: bool = True) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray], np.ndarray, dict]:
         """Advance every world by one control period.
 
         :param actions: (N, 2) agent actions (a_T, a_delta), normalised.
         :param brake: (N,) bool or None: these agents brake (wheel speed target 0, as PyBullet's).
+        :param observe: False: no scans (obs None; a planner that reads the state, training/expert.py).
         :return: obs (N, 170) float32; reward inputs (T (N,), a_delta clipped to [-1, 1] (N,));
             collided (N,) bool (agent touched a wall or a car during the step); info dict with
             ``wall`` / ``car`` contact flags and the number of obstacle respawns this step.
@@ -374,11 +375,12 @@ class FastWorld:
             lap = len(self.cl) * self.cl_ds
             ds = (self.cl_idx[:, 0] * self.cl_ds - s_prev + lap / 2) % lap - lap / 2
             self.prog += -ds if self.heading == "reversed" else ds
-        self._scan_all(self.observe)
+        if observe:
+            self._scan_all(self.observe)
         a_d = np.clip(a[:, 1], -1.0, 1.0)
         info = {"wall": self.wall_hit[:, 0].copy(), "car": self.car_hit[:, 0].copy(),
                 "respawned": respawned}
-        return self.agent_obs(), (T[:, 0], a_d), collided, info
+        return self.agent_obs() if observe else None, (T[:, 0], a_d), collided, info
 
     def _respawn_obstacles(self, agent_collided: np.ndarray) -> int:
         """Obstacle cars that touched a wall or another obstacle car reappear elsewhere on the

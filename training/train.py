@@ -2,6 +2,7 @@
 
     racecav train racing   [--steps N] [--run-dir DIR] [--resume] [--preset paper|fast] [...]
     racecav train overtake --heading default|reversed [--driver policy:racing] [...]
+    racecav train dagger   --init-from POLICY.zip [...]  (imitate a planner, training/dagger.py)
     racecav train select   --run-dir DIR [--trials N]      (training/select.py)
     racecav train ship     --run-dir DIR --checkpoint STEP --name racing|default|reversed
     racecav train report                                   (docs/training.md)
@@ -44,6 +45,8 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
                "init_from", "init_std")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
+DAGGER_FLAGS = ("expert_share", "expert_horizon_s", "grad_steps", "dataset_max")
+"""TrainConfig fields that are flags of ``racecav train dagger`` only."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
@@ -70,9 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from racecav.common.config import TRAIN_PRESETS, EnvConfig, TrainConfig
 
     sub = parser.add_subparsers(dest="train_cmd", required=True, metavar="STAGE")
-    for stage, help_ in (("racing", "stage 1: the racing policy on the empty track (0 obstacles)"),
-                         ("overtake", "stage 2: overtaking with 15 obstacle cars driven by the racing policy")):
-        p = sub.add_parser(stage, help=help_, description=help_)
+    def add_flags(p) -> None:
         p.add_argument("--steps", type=float, default=1e6, help="total samples of the run (default 1e6)")
         p.add_argument("--run-dir", type=Path, help="run folder (default runs/<stage>[-<heading>])")
         p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from latest")
@@ -97,7 +98,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                help=f.description)
             else:
                 p.add_argument(flag, dest=f"env_{name}", type=_flag_type(f.annotation), help=f.description)
+
+    for stage, help_ in (("racing", "stage 1: the racing policy on the empty track (0 obstacles)"),
+                         ("overtake", "stage 2: overtaking with 15 obstacle cars driven by the racing policy")):
+        p = sub.add_parser(stage, help=help_, description=help_)
+        add_flags(p)
         p.set_defaults(stage=stage)
+    p = sub.add_parser("dagger", help="imitate a privileged planner (DAgger) on the overtake env (training/dagger.py)")
+    add_flags(p)
+    for name in DAGGER_FLAGS:
+        f = TrainConfig.model_fields[name]
+        p.add_argument("--" + name.replace("_", "-"), dest=name, type=type(f.default), help=f.description)
+    p.set_defaults(stage="dagger")
     from racecav.training import select  # cheap module: argument definitions only
 
     select.add_subcommands(sub)
@@ -112,6 +124,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args, cfg) -> int:
     if args.train_cmd in ("racing", "overtake"):
         return train(args, cfg)
+    if args.train_cmd == "dagger":
+        return train_dagger(args, cfg)
     if args.train_cmd == "export":
         return export_onnx(args)
     from racecav.training import select
@@ -151,7 +165,7 @@ def config_from_args(args, env_base=None):
     from racecav.common.config import TRAIN_PRESETS, TrainConfig
     from racecav.common.vehicle import format_errors
 
-    overtake = args.stage == "overtake"
+    overtake = args.stage != "racing"  # overtake, dagger: the overtaking env
     preset = TRAIN_PRESETS[args.preset]
     env = {**(env_base.model_dump() if env_base is not None else {}), **preset.get("env", {}),
            "heading": "default", "n_obstacles": 15 if overtake else 0,
@@ -163,7 +177,7 @@ def config_from_args(args, env_base=None):
     if env.get("scenarios") and flags.get("scenario_share") is None:
         env["scenario_share"] = 0.5
     data = {**{k: v for k, v in preset.items() if k != "env"}, "stage": args.stage, "preset": args.preset,
-            **{k: getattr(args, k) for k in TRAIN_FLAGS if getattr(args, k, None) is not None}, "env": env}
+            **{k: getattr(args, k) for k in TRAIN_FLAGS + DAGGER_FLAGS if getattr(args, k, None) is not None}, "env": env}
     if data.get("init_from") is not None:
         data["init_from"] = str(data["init_from"])
     try:
@@ -229,21 +243,7 @@ def train(args, cfg) -> int:
             venv = VecNormalize.load(str(run_dir / "latest.vecnorm.pkl"), venv)
             venv.training = True
         else:
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma)
-            init_norm = Path(tc.init_from).with_suffix(".vecnorm.pkl") if tc.init_from else None
-            if init_norm is not None and init_norm.is_file():
-                # the weights expect the statistics they were trained with: start from those,
-                # a 1-scan policy's for every scan of a stack
-                with init_norm.open("rb") as f:
-                    old = pickle.load(f)
-                src_view, view = source_view(Path(tc.init_from)), VIEWS[tc.env.lidar]
-                venv.ret_rms = old.ret_rms
-                venv.obs_rms.mean, venv.obs_rms.var = (
-                    map_inputs(a, src_view, view, tc.env.obs_stack, stats=True)
-                    for a in (old.obs_rms.mean, old.obs_rms.var))
-                # a new view's outer rays start from the nearest old ray's statistics: a smaller
-                # count lets them adapt within ~1 M samples
-                venv.obs_rms.count = old.obs_rms.count if src_view == view else min(old.obs_rms.count, 1e5)
+            venv = init_normalization(VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma), tc)
     if args.resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         _truncate_csv(run_dir / "progress.csv", model.num_timesteps)
@@ -271,6 +271,72 @@ def train(args, cfg) -> int:
     log.info("%s at %d samples (%s)", run_dir, model.num_timesteps,
              "stopped by signal" if cb.stop_requested else "done")
     return 0
+
+
+def train_dagger(args, cfg) -> int:
+    """``racecav train dagger``: a run folder as train()'s, the policy fitted by training/dagger.py."""
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from racecav.training.dagger import imitate
+    from racecav.training.vec_env import FastVecEnv
+
+    torch.set_num_threads(1)
+    limit_blas_threads(1)
+    run_dir = Path(args.run_dir or RUNS_DIR / "dagger")
+    if args.resume:
+        if not (run_dir / "latest.zip").is_file():
+            log.error("--resume: no %s", run_dir / "latest.zip")
+            return 2
+        tc, _ = load_run_config(run_dir)
+        state = json.loads((run_dir / "latest.json").read_text())
+    else:
+        if (run_dir / "latest.zip").exists():
+            log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
+            return 2
+        try:
+            tc = config_from_args(args, cfg.env if cfg is not None else None)
+        except ValueError as e:
+            print(f"racecav train: {e}")
+            return 2
+        if not tc.init_from or not tc.normalize:
+            print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
+                  "the policy keeps that policy's input statistics")
+            return 2
+        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        (run_dir / "config.json").write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
+        state = {"timesteps": 0, "wall_s": 0.0}
+    fast = FastVecEnv(config=tc.env, seed=tc.seed + state["timesteps"])
+    if args.resume:
+        venv = VecNormalize.load(str(run_dir / "latest.vecnorm.pkl"), fast)
+        model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
+    else:
+        venv = init_normalization(VecNormalize(fast, norm_obs=True, norm_reward=False, gamma=tc.gamma), tc)
+        model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
+    return imitate(model, venv, tc, run_dir, state, int(args.steps), progress=not args.no_progress)
+
+
+def init_normalization(venv, tc):
+    """Start a new run's VecNormalize ``venv`` from the statistics beside ``tc.init_from`` (if
+    any): the weights expect the statistics they were trained with; a 1-scan policy's serve every
+    scan of a stack."""
+    init_norm = Path(tc.init_from).with_suffix(".vecnorm.pkl") if tc.init_from else None
+    if init_norm is None or not init_norm.is_file():
+        return venv
+    with init_norm.open("rb") as f:
+        old = pickle.load(f)
+    src_view, view = source_view(Path(tc.init_from)), VIEWS[tc.env.lidar]
+    venv.ret_rms = old.ret_rms
+    venv.obs_rms.mean, venv.obs_rms.var = (
+        map_inputs(a, src_view, view, tc.env.obs_stack, stats=True)
+        for a in (old.obs_rms.mean, old.obs_rms.var))
+    # a new view's outer rays start from the nearest old ray's statistics: a smaller count lets
+    # them adapt within ~1 M samples
+    venv.obs_rms.count = old.obs_rms.count if src_view == view else min(old.obs_rms.count, 1e5)
+    return venv
 
 
 def _source_env(path: Path, key: str, default):

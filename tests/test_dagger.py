@@ -1,0 +1,86 @@
+"""The privileged planner (training/expert.py) and ``racecav train dagger`` (training/dagger.py).
+
+- the planner passes the conflict-timed paper scenarios that a straight car fails, and only
+  reads the world it plans for;
+- the imitation loss ignores differences the actuation clips away;
+- a dagger run writes a PPO run folder that resumes and that the selection loads.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+
+from racecav.common.scenario import load_scenario, scenario_names
+from racecav.sim.fast_world import FastWorld
+from racecav.training.dagger import action_bounds, imitation_loss
+from racecav.training.expert import Expert
+
+CONFLICT = [n for n in scenario_names() if load_scenario(n).conflict_timed]
+
+
+def test_planner_passes_the_conflict_timed_scenarios_and_only_reads_the_world():
+    scs = [load_scenario(n) for n in CONFLICT]
+    trials = 3
+    fw = FastWorld(n_envs=len(scs) * trials, scenarios=scs, seed=5)
+    fw.scenario_of_env = np.repeat(np.arange(len(scs)), trials)
+    fw.reset()
+    ex = Expert(fw)
+    ended = np.zeros(fw.n_envs, bool)
+    success = np.zeros(fw.n_envs, bool)
+    first = True
+    while not ended.all():
+        before = (fw.x.copy(), fw.actors.s.copy(), fw.time.copy())
+        a = ex.act()
+        if first:  # planning steps copies of the world, never the world itself
+            for b, now in zip(before, (fw.x, fw.actors.s, fw.time)):
+                assert np.array_equal(b, now)
+            first = False
+        fw.step(a)
+        over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
+        success[over] = fw.success()[over]
+        ended |= over
+    assert success.all(), dict(zip(np.repeat(CONFLICT, trials), success))
+
+
+def test_imitation_loss_ignores_what_the_actuation_clips():
+    from racecav.common.vehicle import load_car
+
+    lo, hi = (torch.as_tensor(b) for b in action_bounds(load_car("slash")))
+    scale = torch.ones(2)
+    label = torch.stack([hi, lo])  # full throttle + full left; coast + full right
+    beyond = torch.stack([hi + 0.7, lo - 0.4])
+    assert float(imitation_loss(beyond, label, lo, hi, scale)) == 0.0
+    short = torch.stack([hi - 0.1, lo + 0.1])
+    assert abs(float(imitation_loss(short, label, lo, hi, scale)) - 0.01) < 1e-6
+    mid = torch.tensor([[0.5, 0.0]])
+    assert abs(float(imitation_loss(mid + 0.2, mid, lo, hi, scale)) - 0.04) < 1e-6
+
+
+def test_dagger_run_resumes_and_the_selection_loads_its_checkpoints(tmp_path, capsys):
+    from racecav.cli import main
+    from racecav.training.select import policy_from_checkpoint
+
+    run = tmp_path / "run"
+    base = ["train", "dagger", "--run-dir", str(run), "--no-progress"]
+    flags = ["--preset", "fast", "--n-envs", "8", "--n-steps", "8", "--checkpoint-every", "64",
+             "--grad-steps", "3", "--batch-size", "32", "--world", "figure8", "--heading", "reversed",
+             "--n-obstacles", "4", "--driver", "centerline", "--scenarios", "common/data/scenarios/conflict-head-to-head.toml",
+             "--scenario-share", "0.5", "--obs-stack", "2", "--lidar", "wide",
+             "--init-from", "common/data/policies/avoid.zip", "--expert-horizon-s", "1.0"]
+    assert main(base + flags + ["--steps", "128"]) == 0  # in-process: the torch import is paid once
+    assert json.loads((run / "latest.json").read_text())["timesteps"] == 128
+    assert main(base + ["--resume", "--steps", "192"]) == 0
+    rows = (run / "progress.csv").read_text().splitlines()
+    assert [int(x.split(",")[0]) for x in rows[1:]] == [64, 128, 192]
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["stage"] == "dagger" and cfg["expert_horizon_s"] == 1.0
+    pol = policy_from_checkpoint(run / "checkpoints" / "step_000000192.zip", obs_stack=2, lidar="wide")
+    a = pol(np.full((1, 2 * 169), 5.0, np.float32))
+    assert a.shape == (1, 2) and np.isfinite(a).all()
+    # no --init-from: a clear refusal, no run folder
+    assert main(["train", "dagger", "--run-dir", str(tmp_path / "x"), "--preset", "fast", "--steps", "64"]) == 2
+    assert "--init-from" in capsys.readouterr().out
+    assert not (tmp_path / "x" / "config.json").exists()

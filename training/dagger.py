@@ -1,0 +1,210 @@
+"""``racecav train dagger``: the policy imitates a privileged planner (DAgger), resumable.
+
+    racecav train dagger --run-dir runs/avoid-dagger --init-from common/data/policies/avoid.zip \\
+        --preset fast --heading reversed --world figure8 --n-obstacles 8 --driver centerline \\
+        --scenarios conflicts,traffic --scenario-share 0.8 --lidar wide --obs-stack 2 --steps 2e6
+
+PPO learns the conflicts slowly: a success or a contact seconds later is its only signal about
+which of two similar scenes needed an evasion. Here a planner that reads the world's state and
+future (training/expert.py) labels every step with its action, and the policy (the same SB3
+MlpPolicy, 2 x 64 tanh, on the same lidar observation) is fitted to those labels by regression
+of its mean action (Ross et al. 2011, DAgger): the policy drives (``expert_share`` of the
+episodes are driven by the planner), so the labels cover the states the policy itself reaches; all
+labelled steps are aggregated (the newest ``dataset_max``) and fitted after each rollout.
+
+The run folder is a PPO run's (training/train.py): config.json, progress.csv, checkpoints/
+step_<N>.zip + .vecnorm.pkl, latest.*; ``racecav train select`` and ``ship`` read it as they read
+a PPO run. The observation normalisation is the ``--init-from`` policy's, frozen (the policy
+keeps the input scale it was trained on). The value head and action std are kept as loaded,
+so a PPO run can continue from a checkpoint (``racecav train overtake --init-from``).
+progress.csv's columns: the imitation loss, the share of steps on which the policy's steering
+is within 0.05 rad of the planner's, the success rate of the scenario episodes the policy drove
+and the share of its traffic episodes that ended in a contact, and the share of labels that are
+a manoeuvre rather than plain tracking.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("racecav.train")
+
+FIELDS = ["timesteps", "wall_s", "samples_per_s", "loss", "steer_agree", "scenario_success",
+          "traffic_contacts", "episodes", "dataset", "manoeuvres"]
+STEER_TOL = 0.05  # rad: "agrees with the planner" in progress.csv
+LOSS_SCALE = (0.5, 0.15)  # throttle, steering: the loss counts steering errors of 0.15 like 0.5 of throttle
+
+
+def action_bounds(car) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the actions that still change the car's command: a_T beyond [0, 1] and a_delta
+    beyond the steering range are clipped by the actuation (common/vehicle.py)."""
+    return (np.array([0.0, car.delta_min / car.steer_gain], np.float32),
+            np.array([1.0, car.delta_max / car.steer_gain], np.float32))
+
+
+def imitation_loss(pred, label, lo, hi, scale):
+    """Squared error of the policy's mean action ``pred`` against the planner's ``label`` (torch,
+    (B, 2)), zero where both lie at or beyond the same bound (the car does the same)."""
+    import torch
+
+    diff = pred - label
+    diff = torch.where(label >= hi - 1e-6, torch.clamp(diff, max=0.0), diff)
+    diff = torch.where(label <= lo + 1e-6, torch.clamp(diff, min=0.0), diff)
+    return ((diff / scale) ** 2).mean()
+
+
+class _Stop:
+    requested = False
+
+    def __call__(self, signum, frame):
+        log.warning("signal %d: checkpoint and stop", signum)
+        self.requested = True
+
+
+def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: bool = True) -> int:
+    """The DAgger loop until ``total`` samples or a signal: rollouts, labels, fits, checkpoints.
+
+    :param model: the SB3 PPO model whose policy is fitted (its value head is left alone).
+    :param venv: VecNormalize over a FastVecEnv, statistics frozen here.
+    :param tc: the run's TrainConfig; ``state``: latest.json's timesteps and wall_s.
+    """
+    import torch
+    from tqdm import tqdm
+
+    from racecav.training.expert import Expert
+
+    fast = venv.venv
+    venv.training = False  # frozen statistics
+    policy = model.policy
+    experts = [Expert(w, tc.expert_horizon_s) for w in fast.worlds]
+    params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
+    opt = torch.optim.Adam(params, lr=tc.learning_rate)
+    scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
+    lo, hi = action_bounds(fast.world.car)
+    lo_t, hi_t = torch.as_tensor(lo), torch.as_tensor(hi)
+    rng = np.random.default_rng(tc.seed + state["timesteps"])
+    n, dim = fast.num_envs, fast.observation_space.shape[0]
+    cap = tc.dataset_max
+    data_obs = np.zeros((cap, dim), np.float32)
+    data_act = np.zeros((cap, 2), np.float32)
+    data_man = np.zeros(cap, bool)  # the planner chose a manoeuvre (not plain tracking)
+    size = head = 0
+    samples, wall0, t0 = int(state["timesteps"]), float(state["wall_s"]), time.monotonic()
+    next_ckpt = (samples // tc.checkpoint_every + 1) * tc.checkpoint_every
+    stop = _Stop()
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+    bar = tqdm(total=total, initial=samples, unit="sa", unit_scale=True, mininterval=2.0,
+               dynamic_ncols=True, desc=run_dir.name) if progress else None
+
+    def mean_action(obs):
+        feats = policy.extract_features(torch.as_tensor(obs), policy.pi_features_extractor)
+        return policy.action_net(policy.mlp_extractor.forward_actor(feats))
+
+    def save(final: bool) -> None:
+        ck = run_dir / "checkpoints" / f"step_{samples:09d}"
+        model.num_timesteps = samples
+        model.save(ck.with_suffix(".zip"))
+        venv.save(str(ck.with_suffix(".vecnorm.pkl")))
+        for suffix in (".zip", ".vecnorm.pkl"):
+            tmp = run_dir / f"latest.tmp{suffix}"
+            tmp.write_bytes(ck.with_suffix(suffix).read_bytes())
+            os.replace(tmp, run_dir / f"latest{suffix}")
+        st = {"timesteps": samples, "wall_s": round(wall0 + time.monotonic() - t0, 2), "checkpoint": ck.name,
+              "final": final, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        (run_dir / "latest.tmp.json").write_text(json.dumps(st) + "\n")
+        os.replace(run_dir / "latest.tmp.json", run_dir / "latest.json")
+        log.info("checkpoint %s", ck.name)
+
+    _truncate(run_dir / "progress.csv", samples)
+    obs = venv.reset()
+    by_expert = rng.random(n) < tc.expert_share  # who drives each world's episode
+    try:
+        while samples < total and not stop.requested:
+            t_roll = time.monotonic()
+            agree = succ = eps_s = contacts = eps_t = done_steps = 0
+            for _ in range(tc.n_steps):
+                label = np.concatenate([e.act() for e in experts])
+                man = np.concatenate([e.last_best != 0 for e in experts])
+                with torch.no_grad():
+                    student = mean_action(obs).numpy()
+                steer = np.clip(student[:, 1], lo[1], hi[1]) * fast.world.car.steer_gain
+                agree += int((np.abs(steer - label[:, 1] * fast.world.car.steer_gain) < STEER_TOL).sum())
+                k = np.arange(head, head + n) % cap
+                data_obs[k], data_act[k], data_man[k] = obs, label, man
+                head, size = (head + n) % cap, min(size + n, cap)
+                act = np.where(by_expert[:, None], label, np.clip(student, -1, 1))
+                obs, _, dones, infos = venv.step(act)
+                for i in np.flatnonzero(dones & ~by_expert):  # the policy's own episodes
+                    if fast.is_scenario[i]:
+                        eps_s += 1
+                        succ += bool(infos[i].get("is_success"))
+                    else:
+                        eps_t += 1
+                        contacts += not infos[i].get("TimeLimit.truncated", False)
+                by_expert[dones] = rng.random(int(dones.sum())) < tc.expert_share
+                samples += n
+                done_steps += 1
+                if bar is not None:
+                    bar.update(n)
+                if stop.requested:
+                    break
+            losses = []
+            for _ in range(tc.grad_steps):
+                j = rng.integers(0, size, tc.batch_size)
+                pred = mean_action(data_obs[j])
+                loss = imitation_loss(pred, torch.as_tensor(data_act[j]), lo_t, hi_t, scale)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(float(loss.detach()))
+            dt = time.monotonic() - t_roll
+            row = {"timesteps": samples, "wall_s": round(wall0 + time.monotonic() - t0, 2),
+                   "samples_per_s": round(done_steps * n / dt, 1), "loss": round(float(np.mean(losses)), 5),
+                   "steer_agree": round(agree / (done_steps * n), 4),
+                   "scenario_success": round(succ / eps_s, 4) if eps_s else "",
+                   "traffic_contacts": round(contacts / eps_t, 4) if eps_t else "",
+                   "episodes": eps_s + eps_t, "dataset": size, "manoeuvres": round(float(data_man[:size].mean()), 4)}
+            _append(run_dir / "progress.csv", row)
+            if bar is not None:
+                bar.set_postfix_str(f"loss {row['loss']:.3f} agree {row['steer_agree']:.2f} "
+                                    f"success {row['scenario_success']}", refresh=False)
+            if samples >= next_ckpt:
+                save(final=False)
+                next_ckpt = (samples // tc.checkpoint_every + 1) * tc.checkpoint_every
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        if bar is not None:
+            bar.close()
+    save(final=not stop.requested)
+    log.info("%s at %d samples (%s)", run_dir, samples, "stopped by signal" if stop.requested else "done")
+    return 0
+
+
+def _append(path: Path, row: dict) -> None:
+    new = not path.is_file() or path.stat().st_size == 0
+    with path.open("a", newline="") as f:
+        w = csv.DictWriter(f, FIELDS)
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+def _truncate(path: Path, timesteps: int) -> None:
+    """Drop rows written after the checkpoint being resumed."""
+    if not path.is_file():
+        return
+    with path.open() as f:
+        rows = [r for r in csv.DictReader(f) if int(float(r["timesteps"])) <= timesteps]
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, FIELDS)
+        w.writeheader()
+        w.writerows(rows)

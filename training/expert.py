@@ -1,0 +1,159 @@
+"""A privileged planner for the fast world: the teacher of ``racecav train dagger``.
+
+The planner sees what the policy cannot: the world's state, including every obstacle car's and
+scenario actor's future (it steps an exact copy of the world). At each control step it copies
+each of the N worlds once per candidate manoeuvre into a planning FastWorld of N x K worlds
+(no lidar), drives every copy ``horizon_s`` ahead and returns, per world, the first action of
+the best candidate: a receding-horizon search over motion primitives, the dynamic-window idea
+(Fox et al. 1997) with an exact prediction instead of a constant-velocity one.
+
+A candidate holds a steering action for ``hold`` control steps, then drives on under a tracking
+steer (full throttle throughout): back to the ego's initial heading in a scenario world, a
+pure pursuit of the centerline (in the ego's direction) in a traffic world. Its score is its
+progress at the horizon (the quantity the episode's success and the progress reward count),
+minus a penalty for a clearance to other cars under ``margin_m`` and, in scenario worlds, for
+the lateral offset from the ego's road; a candidate that touches anything scores below every
+one that does not, later contacts above earlier ones.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from racecav.common import vehicle as vehicle_mod
+from racecav.sim.fast_world import FastWorld
+
+# candidate manoeuvres: steering actions within the car's range (rad, steer_gain 1) held for
+# one of two times (control steps), at full throttle. The paper's action cannot brake, and a
+# policy fitted to a mix of full-throttle and coasting labels learns the mean, a part throttle
+# that no plan chose (measured: 0.6-0.9, too slow for the paper-timed crossings).
+STEER_FRACTIONS = (-1.0, -0.5, -0.2, 0.0, 0.2, 0.5, 1.0)
+THROTTLES = (1.0,)
+HOLDS = (3, 8)
+HEADING_GAIN = 0.8    # rad of steering per rad of heading error (scenario worlds' tracking steer) ...
+YAW_RATE_GAIN = 0.15  # ... minus this per rad/s of yaw rate: 1.5 without damping oscillates with
+                      # the steering lag (+-0.08 rad every step, labels a policy cannot imitate)
+MARGIN_M = 0.35       # clearance (m, between box centres minus a car length) below which a plan pays
+CLEARANCE_WEIGHT = 4.0  # score per metre of clearance missing
+LATERAL_WEIGHT = 0.3    # score per metre of lateral offset from the ego's road (scenario worlds)
+CONTACT_SCORE = -1000.0
+TIE_M = 0.1  # score (m) within which the planner keeps tracking, else its previous manoeuvre
+GEOMETRY = {"walls", "wall_box", "faces", "chunks", "cl", "mount", "ray_c", "ray_s", "ray_t",
+            "observe", "ranges"}
+"""FastWorld arrays that are not per-world state (or that the planner does not need)."""
+
+
+def candidates(car) -> np.ndarray:
+    """(K, 3) a_T, a_delta, hold steps; the first is "track at full throttle" (hold 0)."""
+    rows = [(1.0, 0.0, 0)]
+    for t in THROTTLES:
+        for f in STEER_FRACTIONS:
+            steer = f * (car.delta_max if f > 0 else -car.delta_min) / car.steer_gain
+            for h in (HOLDS if f != 0.0 else HOLDS[-1:]):
+                rows.append((t, steer, h))
+    return np.array(rows, dtype=np.float64)
+
+
+class Expert:
+    """The planner of one FastWorld (a traffic or a scenario world of a FastVecEnv batch).
+
+    :param world: the FastWorld whose agents it plans for (read, never changed).
+    :param horizon_s: look-ahead (s).
+    """
+
+    def __init__(self, world: FastWorld, horizon_s: float = 2.5):
+        self.src = world
+        self.cands = candidates(world.car)
+        self.k = len(self.cands)
+        self.h = int(round(horizon_s / world.control_period))
+        scen = world.actors is not None
+        self.plan = FastWorld(n_envs=world.n_envs * self.k, world=world.world, car=world.car,
+                              n_obstacles=world.n_obstacles, heading=world.heading,
+                              driver="centerline", obstacle_lidar=False,
+                              agent_speed_scale=world.agent_speed_scale,
+                              control_period=world.control_period, physics_substeps=world.substeps,
+                              scenarios=world.scenarios if scen else None)
+        self.plan.observe[:] = False  # no lidar: the planner reads the state
+        self.scenario = scen
+        self.last_best = np.zeros(world.n_envs, dtype=np.int64)
+
+    def _copy_state(self) -> None:
+        k = self.k
+        for obj, dst in ((self.src, self.plan), (self.src.actors, self.plan.actors)):
+            if obj is None:
+                continue
+            n = obj.n_envs
+            for name, val in vars(obj).items():
+                if isinstance(val, np.ndarray) and val.ndim and val.shape[0] == n and name not in GEOMETRY:
+                    setattr(dst, name, np.repeat(val, k, axis=0))
+
+    def _track(self) -> np.ndarray:
+        """(N*K,) tracking steer action of every planning world's ego."""
+        p, car = self.plan, self.plan.car
+        if self.scenario:
+            err = np.angle(np.exp(1j * (p.start_pose[:, 2] - p.yaw[:, 0])))
+            steer = HEADING_GAIN * err - YAW_RATE_GAIN * p.r[:, 0]
+        else:  # pure pursuit of the centerline, in the ego's direction
+            v = p.v[:, 0]
+            ld = 0.6 + 0.4 * v
+            step = np.maximum((ld / p.cl_ds).astype(np.int64), 1)
+            idx = (p.cl_idx[:, 0] + (-step if p.heading == "reversed" else step)) % len(p.cl)
+            tx, ty = p.cl[idx, 0], p.cl[idx, 1]
+            ca, sa = np.cos(p.yaw[:, 0]), np.sin(p.yaw[:, 0])
+            rx = p.x[:, 0] - 0.5 * car.wheelbase * ca
+            ry = p.y[:, 0] - 0.5 * car.wheelbase * sa
+            lx = ca * (tx - rx) + sa * (ty - ry)
+            ly = -sa * (tx - rx) + ca * (ty - ry)
+            steer = np.arctan(2.0 * car.wheelbase * ly / np.maximum(lx * lx + ly * ly, 1e-6))
+        return np.clip(steer, car.delta_min, car.delta_max) / car.steer_gain
+
+    def scores(self) -> np.ndarray:
+        """(N, K) each candidate's score from the source world's current state."""
+        self._copy_state()
+        p, n, k = self.plan, self.src.n_envs, self.k
+        cand = np.tile(self.cands, (n, 1))
+        hit = np.full(n * k, np.inf)
+        short = np.full(n * k, np.inf)  # smallest clearance to another car seen
+        prog0 = p.progress()
+        act = np.empty((n * k, 2))
+        length = p.car.length
+        for step in range(self.h):
+            hold = step < cand[:, 2]
+            track = self._track()
+            if step == 0:
+                self.first_track = track.reshape(n, k)[:, 0].copy()
+            act[:, 0] = np.where(hold, cand[:, 0], 1.0)
+            act[:, 1] = np.where(hold, cand[:, 1], track)
+            _, _, col, _ = p.step(act, observe=False)
+            hit = np.where(col & np.isinf(hit), step, hit)
+            if p.n_cars > 1:
+                d = np.hypot(p.x[:, 1:] - p.x[:, :1], p.y[:, 1:] - p.y[:, :1])
+                d = np.where(p.active[:, 1:], d, np.inf).min(axis=1) - length
+                short = np.minimum(short, d)
+        score = p.progress() - prog0
+        score -= CLEARANCE_WEIGHT * np.maximum(MARGIN_M - short, 0.0)
+        if self.scenario:
+            x0, y0, yaw0 = p.start_pose.T
+            lat = -(p.x[:, 0] - x0) * np.sin(yaw0) + (p.y[:, 0] - y0) * np.cos(yaw0)
+            score -= LATERAL_WEIGHT * np.abs(lat)
+        score = np.where(np.isfinite(hit), CONTACT_SCORE + hit, score)
+        return score.reshape(n, k)
+
+    def act(self) -> np.ndarray:
+        """(N, 2) the best candidate's first action in each world: plain tracking unless a
+        manoeuvre scores more than TIE_M better, and the previous manoeuvre unless another does
+        (labels that do not flip between near-equal plans are easier to imitate)."""
+        s = self.scores()
+        self.last_best[self.src.time < 1e-9] = 0  # a new episode
+        best = s.argmax(axis=1)
+        rows = np.arange(len(best))
+        top = s[rows, best]
+        keep = s[rows, self.last_best] >= top - TIE_M
+        best = np.where(keep, self.last_best, best)
+        best = np.where(s[:, 0] >= top - TIE_M, 0, best)
+        self.last_best = best
+        c = self.cands[best]
+        first = np.where(c[:, 2] == 0, self.first_track, c[:, 1])
+        return np.stack([c[:, 0], first], axis=1)
