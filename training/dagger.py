@@ -26,14 +26,14 @@ a manoeuvre rather than plain tracking.
 from __future__ import annotations
 
 import csv
-import json
 import logging
-import os
 import signal
 import time
 from pathlib import Path
 
 import numpy as np
+
+from racecav.training.runs import save_checkpoint, truncate_csv
 
 log = logging.getLogger("racecav.train")
 
@@ -109,21 +109,10 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
         return policy.action_net(policy.mlp_extractor.forward_actor(feats))
 
     def save(final: bool) -> None:
-        ck = run_dir / "checkpoints" / f"step_{samples:09d}"
         model.num_timesteps = samples
-        model.save(ck.with_suffix(".zip"))
-        venv.save(str(ck.with_suffix(".vecnorm.pkl")))
-        for suffix in (".zip", ".vecnorm.pkl"):
-            tmp = run_dir / f"latest.tmp{suffix}"
-            tmp.write_bytes(ck.with_suffix(suffix).read_bytes())
-            os.replace(tmp, run_dir / f"latest{suffix}")
-        st = {"timesteps": samples, "wall_s": round(wall0 + time.monotonic() - t0, 2), "checkpoint": ck.name,
-              "final": final, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        (run_dir / "latest.tmp.json").write_text(json.dumps(st) + "\n")
-        os.replace(run_dir / "latest.tmp.json", run_dir / "latest.json")
-        log.info("checkpoint %s", ck.name)
+        save_checkpoint(run_dir, model, venv, wall0 + time.monotonic() - t0, final)
 
-    _truncate(run_dir / "progress.csv", samples)
+    truncate_csv(run_dir / "progress.csv", samples, FIELDS)
     obs = venv.reset()
     by_expert = rng.random(n) < tc.expert_share  # who drives each world's episode
     try:
@@ -196,15 +185,3 @@ def _append(path: Path, row: dict) -> None:
         if new:
             w.writeheader()
         w.writerow(row)
-
-
-def _truncate(path: Path, timesteps: int) -> None:
-    """Drop rows written after the checkpoint being resumed."""
-    if not path.is_file():
-        return
-    with path.open() as f:
-        rows = [r for r in csv.DictReader(f) if int(float(r["timesteps"])) <= timesteps]
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, FIELDS)
-        w.writeheader()
-        w.writerows(rows)

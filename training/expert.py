@@ -18,11 +18,8 @@ one that does not, later contacts above earlier ones.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from racecav.common import vehicle as vehicle_mod
 from racecav.sim.fast_world import FastWorld
 
 # candidate manoeuvres: steering actions within the car's range (rad, steer_gain 1) held for

@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import logging
+import os
+import time
 from pathlib import Path
+
+log = logging.getLogger("racecav.train")
 
 RECORD_KEYS = ("git_commit", "started", "total_steps")
 """Keys of a run's config.json that describe the run, not its settings."""
@@ -28,3 +34,38 @@ def load_run_config(run_dir: Path):
                 env[k] = data.pop(k)
         data["env"] = env
     return TrainConfig.model_validate(data), record
+
+
+def save_checkpoint(run_dir: Path, model, vec_normalize, wall_s: float, final: bool = False) -> Path:
+    """Write ``checkpoints/step_<N>.zip`` (+ ``.vecnorm.pkl``) of an SB3 model at its
+    num_timesteps, then ``latest.*`` as copies renamed into place (an interruption never leaves
+    half a file) and ``latest.json`` (what ``--resume`` reads)."""
+    n = model.num_timesteps
+    ck = Path(run_dir) / "checkpoints" / f"step_{n:09d}"
+    model.save(ck.with_suffix(".zip"))
+    if vec_normalize is not None:
+        vec_normalize.save(str(ck.with_suffix(".vecnorm.pkl")))
+    for suffix in (".zip", ".vecnorm.pkl"):
+        src = ck.with_suffix(suffix)
+        if src.is_file():
+            tmp = Path(run_dir) / f"latest.tmp{suffix}"
+            tmp.write_bytes(src.read_bytes())
+            os.replace(tmp, Path(run_dir) / f"latest{suffix}")
+    state = {"timesteps": n, "wall_s": round(wall_s, 2), "checkpoint": ck.name, "final": final,
+             "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    (Path(run_dir) / "latest.tmp.json").write_text(json.dumps(state) + "\n")
+    os.replace(Path(run_dir) / "latest.tmp.json", Path(run_dir) / "latest.json")
+    log.info("checkpoint %s (%.0f s wall)", ck.name, wall_s)
+    return ck
+
+
+def truncate_csv(path: Path, timesteps: int, fields: list[str]) -> None:
+    """Drop the rows of a run's CSV written after the checkpoint being resumed."""
+    if not path.is_file():
+        return
+    with path.open() as f:
+        rows = [r for r in csv.DictReader(f) if int(float(r["timesteps"])) <= timesteps]
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)

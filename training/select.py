@@ -648,7 +648,8 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-traffic", "avoid-progress-stack2"), ("avoid-brake", "avoid-traffic"),
             ("avoid-curriculum", "avoid-traffic"), ("avoid-wide", "avoid-curriculum"), ("avoid-lowlr", "avoid-wide"),
             ("avoid-stack3", "avoid-wide"), ("avoid-papertimed", "avoid-wide"), ("avoid-stride", "avoid-papertimed"),
-            ("avoid-wide-stride", "avoid-wide"), ("avoid-dagger", "avoid-wide"))
+            ("avoid-wide-stride", "avoid-wide"), ("avoid-dagger", "avoid-wide"),
+            ("avoid-dagger-ppo", "avoid-wide"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -672,12 +673,14 @@ def _ablation_markdown() -> str:
             continue
         best = pick_best(evals, True)
         best["_last_score"] = max(evals, key=lambda r: int(r["timesteps"]))["score"]
+        # a dagger run has no reward and no entropy bonus: their settings are not a change
+        ppo_only = {"progress_reward", "contact_penalty", "ent_coef"} if "dagger" in (tc.stage, getattr(prev, "stage", "")) else set()
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
-                "curriculum", "lidar") if getattr(prev.env, k) != getattr(tc.env, k)]
+                "curriculum", "lidar") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share")
-               if getattr(prev, k) != getattr(tc, k)]) or "-"
+               if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]) or "-"
         if prev is not None:
             change = f"on {base}: {change}"
             if tc.init_from != prev.init_from:

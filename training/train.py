@@ -29,7 +29,6 @@ import argparse
 import csv
 import json
 import logging
-import os
 import pickle
 import signal
 import time
@@ -37,7 +36,7 @@ from pathlib import Path
 
 from racecav.common.bench import git_commit
 from racecav.common.lidar import VIEWS
-from racecav.training.runs import load_run_config
+from racecav.training.runs import load_run_config, save_checkpoint, truncate_csv
 
 log = logging.getLogger("racecav.train")
 
@@ -214,27 +213,11 @@ def train(args, cfg) -> int:
     limit_blas_threads(1)
     heading = args.env_heading or "default"
     run_dir = Path(args.run_dir or RUNS_DIR / (args.stage if args.stage == "racing" else f"overtake-{heading}"))
-    cfg_path = run_dir / "config.json"
     total = int(args.steps)
-    if args.resume:
-        if not (run_dir / "latest.zip").is_file():
-            log.error("--resume: no %s", run_dir / "latest.zip")
-            return 2
-        tc, record = load_run_config(run_dir)
-        state = json.loads((run_dir / "latest.json").read_text())
-    else:
-        if (run_dir / "latest.zip").exists():
-            log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
-            return 2
-        try:
-            tc = config_from_args(args, cfg.env if cfg is not None else None)
-        except ValueError as e:
-            print(f"racecav train: {e}")
-            return 2
-        record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-        cfg_path.write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
-        state = {"timesteps": 0, "wall_s": 0.0}
+    opened = open_run(args, cfg, run_dir)
+    if opened is None:
+        return 2
+    tc, state = opened
 
     # Env seed: the run's seed, shifted on resume so a resumed run does not replay its episodes.
     venv = make_venv(tc, seed=tc.seed + state["timesteps"])
@@ -246,7 +229,7 @@ def train(args, cfg) -> int:
             venv = init_normalization(VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma), tc)
     if args.resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
-        _truncate_csv(run_dir / "progress.csv", model.num_timesteps)
+        truncate_csv(run_dir / "progress.csv", model.num_timesteps, CSV_FIELDS)
         log.info("resumed %s at %d samples", run_dir, model.num_timesteps)
     else:
         model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
@@ -273,6 +256,32 @@ def train(args, cfg) -> int:
     return 0
 
 
+def open_run(args, cfg, run_dir: Path):
+    """(TrainConfig, latest state) of the run in ``run_dir``: read back with ``--resume``, else
+    made from the flags and recorded in a new config.json. None (after saying why) if neither."""
+    if args.resume:
+        if not (run_dir / "latest.zip").is_file():
+            log.error("--resume: no %s", run_dir / "latest.zip")
+            return None
+        return load_run_config(run_dir)[0], json.loads((run_dir / "latest.json").read_text())
+    if (run_dir / "latest.zip").exists():
+        log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
+        return None
+    try:
+        tc = config_from_args(args, cfg.env if cfg is not None else None)
+    except ValueError as e:
+        print(f"racecav train: {e}")
+        return None
+    if tc.stage == "dagger" and (not tc.init_from or not tc.normalize):
+        print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
+              "the imitation keeps that policy's input statistics")
+        return None
+    record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
+    return tc, {"timesteps": 0, "wall_s": 0.0}
+
+
 def train_dagger(args, cfg) -> int:
     """``racecav train dagger``: a run folder as train()'s, the policy fitted by training/dagger.py."""
     import torch
@@ -285,29 +294,10 @@ def train_dagger(args, cfg) -> int:
     torch.set_num_threads(1)
     limit_blas_threads(1)
     run_dir = Path(args.run_dir or RUNS_DIR / "dagger")
-    if args.resume:
-        if not (run_dir / "latest.zip").is_file():
-            log.error("--resume: no %s", run_dir / "latest.zip")
-            return 2
-        tc, _ = load_run_config(run_dir)
-        state = json.loads((run_dir / "latest.json").read_text())
-    else:
-        if (run_dir / "latest.zip").exists():
-            log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
-            return 2
-        try:
-            tc = config_from_args(args, cfg.env if cfg is not None else None)
-        except ValueError as e:
-            print(f"racecav train: {e}")
-            return 2
-        if not tc.init_from or not tc.normalize:
-            print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
-                  "the policy keeps that policy's input statistics")
-            return 2
-        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-        record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        (run_dir / "config.json").write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
-        state = {"timesteps": 0, "wall_s": 0.0}
+    opened = open_run(args, cfg, run_dir)
+    if opened is None:
+        return 2
+    tc, state = opened
     fast = FastVecEnv(config=tc.env, seed=tc.seed + state["timesteps"])
     if args.resume:
         venv = VecNormalize.load(str(run_dir / "latest.vecnorm.pkl"), fast)
@@ -443,18 +433,6 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     model.policy.load_state_dict(src, strict=True)
 
 
-def _truncate_csv(path: Path, timesteps: int) -> None:
-    """Drop learning-curve rows written after the checkpoint being resumed."""
-    if not path.is_file():
-        return
-    with path.open() as f:
-        rows = [r for r in csv.DictReader(f) if int(float(r["timesteps"])) <= timesteps]
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, CSV_FIELDS)
-        w.writeheader()
-        w.writerows(rows)
-
-
 def _configure_logger(model, run_dir: Path) -> None:
     """SB3 logger: our CSV (appending across resumes) + TensorBoard if installed."""
     from stable_baselines3.common.logger import Logger
@@ -582,25 +560,7 @@ def _make_callback_class():
                 w.writerow([self.model.num_timesteps, *(f"{r:.3f}" for r in cur.success_rates().values())])
 
         def save(self, model, final: bool = False) -> Path:
-            n = model.num_timesteps
-            ck = self.run_dir / "checkpoints" / f"step_{n:09d}"
-            model.save(ck.with_suffix(".zip"))
-            vn = model.get_vec_normalize_env()
-            if vn is not None:
-                vn.save(str(ck.with_suffix(".vecnorm.pkl")))
-            # latest: copies written then renamed, so an interruption never leaves half a file
-            for suffix in (".zip", ".vecnorm.pkl"):
-                src = ck.with_suffix(suffix)
-                if src.is_file():
-                    tmp = self.run_dir / f"latest.tmp{suffix}"
-                    tmp.write_bytes(src.read_bytes())
-                    os.replace(tmp, self.run_dir / f"latest{suffix}")
-            state = {"timesteps": n, "wall_s": round(self.wall(), 2), "checkpoint": ck.name,
-                     "final": final, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-            (self.run_dir / "latest.tmp.json").write_text(json.dumps(state) + "\n")
-            os.replace(self.run_dir / "latest.tmp.json", self.run_dir / "latest.json")
-            log.info("checkpoint %s (%.0f s wall)", ck.name, self.wall())
-            return ck
+            return save_checkpoint(self.run_dir, model, model.get_vec_normalize_env(), self.wall(), final)
 
         def close(self) -> None:
             if self.bar is not None:
