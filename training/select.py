@@ -836,7 +836,18 @@ def _ablation_markdown() -> str:
           "training after the first checkpoint (progress.csv), against the planner's ~100 %; its steering "
           "agrees with the planner's within 0.05 rad on 44-60 % of the steps. From the scans it sees, "
           "the 2 x 64 network does not reproduce the planner's timing-dependent choices within this "
-          "budget (imitation loss still falling slowly, 0.46 at 65 k samples to 0.34). Stopped, rejected.", ""]
+          "budget (imitation loss still falling slowly, 0.46 at 65 k samples to 0.34). Stopped, rejected. "
+          "Row 14 (avoid-dagger-ppo) is row 7's PPO run, same command and mix, started from row 13's "
+          "0.2 M checkpoint instead of row 6's policy (`--init-from training/checkpoints/avoid-dagger/"
+          "checkpoints/step_000196608.zip`, committed). Why: PPO from row 7's policy always drifted into "
+          "turning left away from every car crossing from the left (rows 8-12); the imitation starts it "
+          "from a policy that passes the paper-timed side scenarios. It holds both left-to-right timings "
+          "together better than any earlier row: at its six checkpoints from 11 M samples on, paper-timed "
+          "left-to-right 93-99 % and conflict-timed left-to-right 84-97 % (66 % at the last), but it has "
+          "not relearnt the head-on (conflict-timed 27-92 %, paper-timed 72-81 %) or the suite (70-77 % on "
+          "the train split): scores 0.72-0.84 up to 16.5 M samples (35 min). Stopped for the session's time, "
+          "rejected so far, resumable (`racecav train overtake --resume --run-dir runs/avoid-dagger-ppo "
+          "--steps 60e6` after copying training/checkpoints/avoid-dagger-ppo to runs/, as above).", ""]
     for run, *_ in rows:
         if (COMMITTED / run / "eval.png").is_file():
             img = REPO / "docs" / "img" / f"training_eval_{run}.png"
