@@ -1,7 +1,7 @@
 """The privileged planner (training/expert.py) and ``racecav train dagger`` (training/dagger.py).
 
-- the planner passes the conflict-timed paper scenarios that a straight car fails, and only
-  reads the world it plans for;
+- the planner passes the conflict-timed paper scenarios that a straight car fails, only reads
+  the world it plans for, and refuses traffic it cannot predict;
 - the imitation loss ignores differences the actuation clips away;
 - a dagger run writes a PPO run folder that resumes and that the selection loads.
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from racecav.common.scenario import load_scenario, scenario_names
@@ -84,3 +85,10 @@ def test_dagger_run_resumes_and_the_selection_loads_its_checkpoints(tmp_path, ca
     assert main(["train", "dagger", "--run-dir", str(tmp_path / "x"), "--preset", "fast", "--steps", "64"]) == 2
     assert "--init-from" in capsys.readouterr().out
     assert not (tmp_path / "x" / "config.json").exists()
+
+
+def test_planner_refuses_traffic_it_cannot_predict():
+    fw = FastWorld(n_envs=1, world="figure8", n_obstacles=2, driver=lambda obs: np.zeros((len(obs), 2)))
+    with pytest.raises(ValueError, match="centerline"):
+        Expert(fw)
+    Expert(FastWorld(n_envs=1, world="figure8", n_obstacles=2, driver="centerline"))

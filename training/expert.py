@@ -21,11 +21,12 @@ from __future__ import annotations
 import numpy as np
 
 from racecav.sim.fast_world import FastWorld
+from racecav.sim.traffic import CenterlineDriver
 
 # candidate manoeuvres: steering actions within the car's range (rad, steer_gain 1) held for
 # one of two times (control steps), at full throttle. The paper's action cannot brake, and a
 # policy fitted to a mix of full-throttle and coasting labels learns the mean, a part throttle
-# that no plan chose (measured: 0.6-0.9, too slow for the paper-timed crossings).
+# that no plan chose (0.6-0.9 in a first run, too slow for the paper-timed crossings).
 STEER_FRACTIONS = (-1.0, -0.5, -0.2, 0.0, 0.2, 0.5, 1.0)
 THROTTLES = (1.0,)
 HOLDS = (3, 8)
@@ -61,11 +62,14 @@ class Expert:
     """
 
     def __init__(self, world: FastWorld, horizon_s: float = 2.5):
+        scen = world.actors is not None
+        if not scen and world.n_obstacles and not isinstance(world.driver, CenterlineDriver):
+            # the copies must move the traffic as the world does; a policy driver would need scans
+            raise ValueError("the planner predicts traffic driven by the centerline driver only (--driver centerline)")
         self.src = world
         self.cands = candidates(world.car)
         self.k = len(self.cands)
         self.h = int(round(horizon_s / world.control_period))
-        scen = world.actors is not None
         self.plan = FastWorld(n_envs=world.n_envs * self.k, world=world.world, car=world.car,
                               n_obstacles=world.n_obstacles, heading=world.heading,
                               driver="centerline", obstacle_lidar=False,
