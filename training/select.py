@@ -833,7 +833,7 @@ def _ablation_markdown() -> str:
           "straight ego passes) and the suite's head-on family (95 %), but not the crossings that need an "
           "evasion (suite cross-left 11-31 %, staggered 24-38 %, conflict-timed left-to-right 2-60 %); "
           "its checkpoints score 0.64-0.74 and its own episodes succeed in 37-69 % of the scenarios in "
-          "training after the first checkpoint (progress.csv), against the planner's ~100 %; its steering "
+          "training after the first checkpoint (progress.csv); its steering "
           "agrees with the planner's within 0.05 rad on 44-60 % of the steps. From the scans it sees, "
           "the 2 x 64 network does not reproduce the planner's timing-dependent choices within this "
           "budget (imitation loss still falling slowly, 0.46 at 65 k samples to 0.34). Stopped, rejected. "
