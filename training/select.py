@@ -830,7 +830,7 @@ def _ablation_markdown() -> str:
           "to all labels so far (DAgger). At 260-320 samples/s (the planner costs ~0.2 s per control "
           "step of 64 worlds) it ran 0.36 M samples in 21 min: the policy learns the paper-timed side "
           "scenarios (99-100 % from the first checkpoint: the planner does not evade a car that a fast "
-          "straight ego passes) and the suite's head-on family (95 %), but not the crossings that need an "
+          "straight ego passes) and the suite's head-on family (84-96 % from 0.2 M samples on), but not the crossings that need an "
           "evasion (suite cross-left 11-31 %, staggered 24-38 %, conflict-timed left-to-right 2-60 %); "
           "its checkpoints score 0.64-0.74 and its own episodes succeed in 37-69 % of the scenarios in "
           "training after the first checkpoint (progress.csv); its steering "
