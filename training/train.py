@@ -107,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(p)
     for name in DAGGER_FLAGS:
         f = TrainConfig.model_fields[name]
-        p.add_argument("--" + name.replace("_", "-"), dest=name, type=type(f.default), help=f.description)
+        p.add_argument("--" + name.replace("_", "-"), dest=name, type=_flag_type(f.annotation), help=f.description)
     p.set_defaults(stage="dagger")
     from racecav.training import select  # cheap module: argument definitions only
 
