@@ -271,11 +271,18 @@ def _cut_crossings(segs: np.ndarray, seg_s: np.ndarray, cl: np.ndarray, half: fl
     s_cl = np.concatenate([[0.0], np.cumsum(seg_len)])[:-1]
     lap = float(seg_len.sum())
 
+    lo, hi = np.minimum(a, a + d), np.maximum(a, a + d)  # bounding box of each centerline segment
+
     def nearest(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per point: distance to each centerline segment (Q, K) and that segment's station."""
-        t = np.clip(((q[:, None, :] - a[None]) * d[None]).sum(-1) / np.maximum(seg_len**2, 1e-12), 0, 1)
-        dist = np.linalg.norm(a[None] + d[None] * t[..., None] - q[:, None, :], axis=-1)
-        return dist, s_cl[None, :] + t * seg_len[None, :]
+        """Per point: distance to the centerline segments (Q, K') and their stations. Only the
+        K' segments whose bounding box comes within ``half`` of the points' box: the others are
+        farther than ``half`` from every point and cannot make one inside (exact, and it keeps
+        building a world fast: every env and test builds one)."""
+        near = np.all((lo <= q.max(0) + half) & (hi >= q.min(0) - half), axis=1)
+        a_, d_, len_ = a[near], d[near], seg_len[near]
+        t = np.clip(((q[:, None, :] - a_[None]) * d_[None]).sum(-1) / np.maximum(len_**2, 1e-12), 0, 1)
+        dist = np.linalg.norm(a_[None] + d_[None] * t[..., None] - q[:, None, :], axis=-1)
+        return dist, s_cl[near][None, :] + t * len_[None, :]
 
     out = []
     for (x0, y0, x1, y1), (sa, sb) in zip(segs, seg_s):
