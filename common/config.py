@@ -406,6 +406,13 @@ class TrainConfig(Section):
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)
     """dagger: labelled samples kept (the newest; the aggregate is not checkpointed)."""
+    # overtake stage: PPO with the planner's labels as an auxiliary loss (training/imitation_term.py)
+    bc_coef: float = Field(0.0, ge=0)
+    """overtake: weight of the imitation of the planner after each PPO update (0: plain PPO)."""
+    bc_label_steps: int = Field(2, ge=1)
+    """overtake with bc_coef: rollout steps at which the planner labels every world."""
+    bc_grad_steps: int = Field(20, ge=1)
+    """overtake with bc_coef: imitation minibatches (batch_size) after each PPO update."""
 
 
 TRAIN_PRESETS: dict[str, dict] = {

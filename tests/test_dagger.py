@@ -92,3 +92,66 @@ def test_planner_refuses_traffic_it_cannot_predict():
     with pytest.raises(ValueError, match="centerline"):
         Expert(fw)
     Expert(FastWorld(n_envs=1, world="figure8", n_obstacles=2, driver="centerline"))
+
+
+def test_planner_plans_a_subset_as_it_plans_the_whole_batch():
+    sc = load_scenario("conflict-left-to-right")
+    fw = FastWorld(n_envs=4, scenarios=[sc], seed=2)
+    fw.reset()
+    for _ in range(5):
+        fw.step(np.tile([1.0, 0.0], (4, 1)))
+    whole, part = Expert(fw, horizon_s=1.0), Expert(fw, horizon_s=1.0, envs=[1, 3])
+    assert np.array_equal(whole.scores()[[1, 3]], part.scores())
+    assert part.act().shape == (2, 2)
+
+
+def test_ppo_imitation_term_fits_the_planner_and_resumes(tmp_path):
+    """``racecav train overtake --bc-coef``: the planner labels every world at bc_label_steps steps
+    per rollout, the fit after each PPO update lowers the imitation loss on those labels, and
+    imitation.csv continues across a resume."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from racecav.cli import main
+    from racecav.training.imitation_term import make_callback
+    from racecav.training.runs import load_run_config
+    from racecav.training.train import _ppo_kwargs, make_venv
+
+    run = tmp_path / "run"
+    base = ["train", "overtake", "--run-dir", str(run), "--no-progress"]
+    flags = ["--preset", "fast", "--n-envs", "8", "--n-steps", "8", "--batch-size", "32", "--n-epochs", "1",
+             "--checkpoint-every", "64", "--world", "figure8", "--heading", "reversed", "--n-obstacles", "4",
+             "--driver", "centerline", "--scenarios", "common/data/scenarios/conflict-left-to-right.toml",
+             "--scenario-share", "0.5", "--obs-stack", "2", "--lidar", "wide", "--init-from",
+             "common/data/policies/avoid.zip", "--bc-coef", "1", "--bc-label-steps", "2", "--bc-grad-steps", "3",
+             "--expert-horizon-s", "1.0"]
+    assert main(base + flags + ["--steps", "128"]) == 0
+    assert main(base + ["--resume", "--steps", "256"]) == 0
+    with (run / "imitation.csv").open() as f:
+        rows = [r.split(",") for r in f.read().splitlines()[1:]]
+    # a fit after each update but the last: at 64 (labels of 8 worlds x 2 steps), then the
+    # resumed run starts an empty aggregate (not checkpointed) and fits at 192
+    assert [(int(r[0]), int(r[1])) for r in rows] == [(64, 16), (192, 16)], rows
+    assert all(np.isfinite(float(r[2])) for r in rows)
+    assert load_run_config(run)[0].bc_coef == 1.0
+
+    # the fit itself: on a fresh model, the loss on the labels it fitted falls
+    tc = load_run_config(run)[0].model_copy(update={"bc_coef": 10.0, "bc_grad_steps": 40})
+    venv = VecNormalize(make_venv(tc, seed=3), norm_obs=True, norm_reward=True, gamma=tc.gamma)
+    model = PPO("MlpPolicy", venv, seed=0, device="cpu", verbose=0, **_ppo_kwargs(tc))
+    cb = make_callback(tmp_path / "fresh", tc, venv.unwrapped, seed=0)
+    (tmp_path / "fresh").mkdir()
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.learn(192, callback=cb)  # 3 rollouts of 64: fits after the first two
+    fitted = slice(0, 32)
+    lo, hi = (torch.as_tensor(b) for b in action_bounds(venv.unwrapped.world.car))
+    obs = torch.as_tensor(venv.normalize_obs(cb.obs[fitted]).astype(np.float32))
+
+    def loss():
+        with torch.no_grad():
+            return float(imitation_loss(cb._mean_action(obs), torch.as_tensor(cb.act[fitted]), lo, hi,
+                                        torch.tensor([0.5, 0.15])))
+
+    after = loss()
+    model.policy.load_state_dict(before)
+    assert after < 0.5 * loss(), (after, loss())

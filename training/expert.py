@@ -59,18 +59,21 @@ class Expert:
 
     :param world: the FastWorld whose agents it plans for (read, never changed).
     :param horizon_s: look-ahead (s).
+    :param envs: plan for these of its worlds only (default: all of them).
     """
 
-    def __init__(self, world: FastWorld, horizon_s: float = 2.5):
+    def __init__(self, world: FastWorld, horizon_s: float = 2.5, envs=None):
         scen = world.actors is not None
         if not scen and world.n_obstacles and not isinstance(world.driver, CenterlineDriver):
             # the copies must move the traffic as the world does; a policy driver would need scans
             raise ValueError("the planner predicts traffic driven by the centerline driver only (--driver centerline)")
         self.src = world
+        self.envs = np.arange(world.n_envs) if envs is None else np.asarray(envs, dtype=np.int64)
+        self.n = len(self.envs)
         self.cands = candidates(world.car)
         self.k = len(self.cands)
         self.h = int(round(horizon_s / world.control_period))
-        self.plan = FastWorld(n_envs=world.n_envs * self.k, world=world.world, car=world.car,
+        self.plan = FastWorld(n_envs=self.n * self.k, world=world.world, car=world.car,
                               n_obstacles=world.n_obstacles, heading=world.heading,
                               driver="centerline", obstacle_lidar=False,
                               agent_speed_scale=world.agent_speed_scale,
@@ -78,7 +81,7 @@ class Expert:
                               scenarios=world.scenarios if scen else None)
         self.plan.observe[:] = False  # no lidar: the planner reads the state
         self.scenario = scen
-        self.last_best = np.zeros(world.n_envs, dtype=np.int64)
+        self.last_best = np.zeros(self.n, dtype=np.int64)
 
     def _copy_state(self) -> None:
         k = self.k
@@ -88,7 +91,7 @@ class Expert:
             n = obj.n_envs
             for name, val in vars(obj).items():
                 if isinstance(val, np.ndarray) and val.ndim and val.shape[0] == n and name not in GEOMETRY:
-                    setattr(dst, name, np.repeat(val, k, axis=0))
+                    setattr(dst, name, np.repeat(val[self.envs], k, axis=0))
 
     def _track(self) -> np.ndarray:
         """(N*K,) tracking steer action of every planning world's ego."""
@@ -111,9 +114,9 @@ class Expert:
         return np.clip(steer, car.delta_min, car.delta_max) / car.steer_gain
 
     def scores(self) -> np.ndarray:
-        """(N, K) each candidate's score from the source world's current state."""
+        """(n, K) each candidate's score from the source world's current state."""
         self._copy_state()
-        p, n, k = self.plan, self.src.n_envs, self.k
+        p, n, k = self.plan, self.n, self.k
         cand = np.tile(self.cands, (n, 1))
         hit = np.full(n * k, np.inf)
         short = np.full(n * k, np.inf)  # smallest clearance to another car seen
@@ -143,11 +146,11 @@ class Expert:
         return score.reshape(n, k)
 
     def act(self) -> np.ndarray:
-        """(N, 2) the best candidate's first action in each world: plain tracking unless a
+        """(n, 2) the best candidate's first action in each planned world: plain tracking unless a
         manoeuvre scores more than TIE_M better, and the previous manoeuvre unless another does
         (labels that do not flip between near-equal plans are easier to imitate)."""
         s = self.scores()
-        self.last_best[self.src.time < 1e-9] = 0  # a new episode
+        self.last_best[self.src.time[self.envs] < 1e-9] = 0  # a new episode
         best = s.argmax(axis=1)
         rows = np.arange(len(best))
         top = s[rows, best]

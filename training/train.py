@@ -46,6 +46,8 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert_share", "expert_horizon_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
+IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert_horizon_s", "dataset_max")
+"""TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
@@ -66,6 +68,14 @@ def _flag_type(annotation):
     if t is int:
         return lambda v: int(float(v))
     return t if t in (float, str) else str
+
+
+def add_stage_flags(p, names) -> None:
+    from racecav.common.config import TrainConfig
+
+    for name in names:
+        f = TrainConfig.model_fields[name]
+        p.add_argument("--" + name.replace("_", "-"), dest=name, type=_flag_type(f.annotation), help=f.description)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,11 +113,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p = sub.add_parser(stage, help=help_, description=help_)
         add_flags(p)
         p.set_defaults(stage=stage)
+        if stage == "overtake":
+            add_stage_flags(p, IMITATION_FLAGS)
     p = sub.add_parser("dagger", help="imitate a privileged planner (DAgger) on the overtake env (training/dagger.py)")
     add_flags(p)
-    for name in DAGGER_FLAGS:
-        f = TrainConfig.model_fields[name]
-        p.add_argument("--" + name.replace("_", "-"), dest=name, type=_flag_type(f.annotation), help=f.description)
+    add_stage_flags(p, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
     from racecav.training import select  # cheap module: argument definitions only
 
@@ -176,7 +186,7 @@ def config_from_args(args, env_base=None):
     if env.get("scenarios") and flags.get("scenario_share") is None:
         env["scenario_share"] = 0.5
     data = {**{k: v for k, v in preset.items() if k != "env"}, "stage": args.stage, "preset": args.preset,
-            **{k: getattr(args, k) for k in TRAIN_FLAGS + DAGGER_FLAGS if getattr(args, k, None) is not None}, "env": env}
+            **{k: getattr(args, k) for k in TRAIN_FLAGS + DAGGER_FLAGS + IMITATION_FLAGS if getattr(args, k, None) is not None}, "env": env}
     if data.get("init_from") is not None:
         data["init_from"] = str(data["init_from"])
     try:
@@ -237,13 +247,19 @@ def train(args, cfg) -> int:
             init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
+    callbacks = [cb]
+    if tc.bc_coef > 0:
+        from racecav.training.imitation_term import make_callback
+
+        # first: its fit after each update goes into the checkpoint the train callback writes next
+        callbacks.insert(0, make_callback(run_dir, tc, venv.unwrapped, seed=tc.seed + state["timesteps"]))
     remaining = total - model.num_timesteps
     if remaining <= 0:
         log.info("run already at %d >= %d samples", model.num_timesteps, total)
         return 0
     old = {sig: signal.signal(sig, cb.request_stop) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        model.learn(remaining, callback=cb, reset_num_timesteps=False, progress_bar=False)
+        model.learn(remaining, callback=callbacks, reset_num_timesteps=False, progress_bar=False)
     finally:
         for sig, h in old.items():
             signal.signal(sig, h)

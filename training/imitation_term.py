@@ -1,0 +1,125 @@
+"""PPO with an imitation term: ``racecav train overtake ... --bc-coef C`` (training/train.py).
+
+PPO alone learns slowly which of two similar scenes needs an evasion (a crossing car that will
+pass ahead of the ego, or one on a collision course): its only signal is a success or a contact
+seconds later. The privileged planner of ``racecav train dagger`` (training/expert.py) knows,
+and pure imitation of it (dagger.py) did not reach PPO's level on the suite (docs/training.md,
+rows 13-14). Here PPO keeps its objective and the planner's labels are an auxiliary loss, the
+usual way to combine the two (e.g. Rajeswaran et al. 2018, DAPG): after every PPO update,
+``bc_grad_steps`` minibatches of the imitation loss of dagger.py times ``bc_coef`` go through
+PPO's own optimizer.
+
+The planner costs about as much per call for 64 worlds as for one (its per-step overhead
+dominates), so it labels every world of the batch at ``bc_label_steps`` random steps of each
+rollout, states the policy itself reached (DAgger's on-policy labels). The newest
+``dataset_max`` labels are kept with their raw observations (normalised at fit time with the
+run's current statistics); the aggregate is not checkpointed. imitation.csv in the run folder
+holds one row per fit: labels so far, the loss, the steering agreement with the planner on the
+newest labels, and the share of labels that are a manoeuvre rather than plain tracking.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from racecav.training.dagger import LOSS_SCALE, STEER_TOL, action_bounds, imitation_loss
+from racecav.training.runs import truncate_csv
+
+FIELDS = ["timesteps", "labels", "loss", "steer_agree", "manoeuvres"]
+
+
+def make_callback(run_dir: Path, tc, fast, seed: int):
+    """The SB3 callback that labels and fits (``fast``: the run's FastVecEnv)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from racecav.training.expert import Expert
+
+    class _ImitationTerm(BaseCallback):
+        def __init__(self):
+            super().__init__()
+            self.experts = [Expert(w, tc.expert_horizon_s) for w in fast.worlds]
+            self.car = fast.world.car
+            self.lo, self.hi = action_bounds(self.car)
+            self.rng = np.random.default_rng(seed)
+            n, dim, cap = fast.num_envs, fast.observation_space.shape[0], tc.dataset_max
+            self.obs = np.zeros((cap, dim), np.float32)
+            self.act = np.zeros((cap, 2), np.float32)
+            self.man = np.zeros(cap, bool)
+            self.size = self.head = 0
+            self.n = n
+            self.new = (0, 0)  # (start, count) of the newest labels: the agreement is measured on them
+            self.label_at: set[int] = set()
+            self.step_in_rollout = 0
+            self.path = run_dir / "imitation.csv"
+
+        def _on_training_start(self) -> None:
+            truncate_csv(self.path, self.model.num_timesteps, FIELDS)
+
+        def _on_rollout_start(self) -> None:
+            # after the previous PPO update (the train callback checkpoints after this one)
+            if self.size:
+                self._fit()
+            self.label_at = set(self.rng.choice(tc.n_steps, tc.bc_label_steps, replace=False).tolist())
+            self.step_in_rollout = 0
+            self.new = (self.head, 0)
+
+        def _on_step(self) -> bool:
+            # the worlds' state now is the one new_obs was scanned in (auto-resets included)
+            if self.step_in_rollout in self.label_at:
+                for e in self.experts:
+                    e.last_best[:] = 0  # labels at spaced steps: no hysteresis to keep
+                label = np.concatenate([e.act() for e in self.experts])
+                man = np.concatenate([e.last_best != 0 for e in self.experts])
+                vn = self.model.get_vec_normalize_env()
+                raw = vn.get_original_obs() if vn is not None else self.locals["new_obs"]
+                k = np.arange(self.head, self.head + self.n) % len(self.obs)
+                self.obs[k], self.act[k], self.man[k] = raw, label, man
+                self.head, self.size = (self.head + self.n) % len(self.obs), min(self.size + self.n, len(self.obs))
+                self.new = (self.new[0], self.new[1] + self.n)
+            self.step_in_rollout += 1
+            return True
+
+        def _mean_action(self, obs):
+            import torch
+
+            p = self.model.policy
+            feats = p.extract_features(torch.as_tensor(obs), p.pi_features_extractor)
+            return p.action_net(p.mlp_extractor.forward_actor(feats))
+
+        def _fit(self) -> None:
+            import torch
+
+            p, vn = self.model.policy, self.model.get_vec_normalize_env()
+            norm = (lambda x: vn.normalize_obs(x).astype(np.float32)) if vn is not None else (lambda x: x)  # noqa: E731
+            lo, hi = torch.as_tensor(self.lo), torch.as_tensor(self.hi)
+            scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
+            start, count = self.new
+            k = np.arange(start, start + count) % len(self.obs)
+            with torch.no_grad():
+                steer = np.clip(self._mean_action(norm(self.obs[k])).numpy()[:, 1], self.lo[1], self.hi[1])
+            agree = float(np.mean(np.abs(steer - self.act[k, 1]) * self.car.steer_gain < STEER_TOL)) if count else float("nan")
+            p.set_training_mode(True)
+            losses = []
+            for _ in range(tc.bc_grad_steps):
+                j = self.rng.integers(0, self.size, tc.batch_size)
+                loss = tc.bc_coef * imitation_loss(self._mean_action(norm(self.obs[j])),
+                                                   torch.as_tensor(self.act[j]), lo, hi, scale)
+                p.optimizer.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(p.parameters(), tc.max_grad_norm)
+                p.optimizer.step()
+                losses.append(float(loss.detach()) / tc.bc_coef)
+            p.set_training_mode(False)
+            new = not self.path.is_file() or self.path.stat().st_size == 0
+            with self.path.open("a", newline="") as f:
+                w = csv.DictWriter(f, FIELDS)
+                if new:
+                    w.writeheader()
+                w.writerow({"timesteps": self.model.num_timesteps, "labels": self.size,
+                            "loss": round(float(np.mean(losses)), 5), "steer_agree": round(agree, 4),
+                            "manoeuvres": round(float(self.man[:self.size].mean()), 4)})
+
+    return _ImitationTerm()
