@@ -572,13 +572,14 @@ def global_nearest(px, py, cl):
 
 @njit(cache=True, fastmath=True)
 def pure_pursuit(x, y, yaw, v, active, idx, offset, vfac, cl, ds, wheelbase, steer_gain, v_max,
-                 a_lat, width, first, out):
+                 a_lat, width, first, direction, out):
     """Traffic driver: pure pursuit of the centerline (shifted by each car's lateral offset),
     speed from a per-car fraction of top speed, slowed for curvature ahead and for a car ahead
     driving the same way.
 
     :param cl: (K, 4) dense centerline table x, y, yaw, curvature at spacing ``ds``.
     :param first: index of the first driven car (1: car 0 is the agent).
+    :param direction: 1 along the centerline, -1 against it (the planner's reversed ego).
     :param out: (N, C, 2) normalised actions (a_T, a_delta) written for cars >= first.
     """
     N, C = x.shape
@@ -589,7 +590,7 @@ def pure_pursuit(x, y, yaw, v, active, idx, offset, vfac, cl, ds, wheelbase, ste
                 continue
             vc = v[n, c]
             ld = 0.6 + 0.4 * vc
-            k = (idx[n, c] + int(ld / ds)) % K
+            k = (idx[n, c] + direction * int(ld / ds)) % K
             nx = -math.sin(cl[k, 2])
             ny = math.cos(cl[k, 2])
             tx = cl[k, 0] + offset[n, c] * nx
@@ -607,7 +608,7 @@ def pure_pursuit(x, y, yaw, v, active, idx, offset, vfac, cl, ds, wheelbase, ste
             kap = 0.0
             horizon = int((1.0 + vc * vc / 2.0) / ds) + 1
             for h in range(0, horizon, 2):
-                kk = abs(cl[(idx[n, c] + h) % K, 3])
+                kk = abs(cl[(idx[n, c] + direction * h) % K, 3])
                 if kk > kap:
                     kap = kk
             vd = vfac[n, c] * v_max

@@ -123,7 +123,7 @@ class CenterlineDriver:
     def __call__(self, fw) -> np.ndarray:  # fw: racecav.sim.fast_world.FastWorld
         K.pure_pursuit(fw.x, fw.y, fw.yaw, fw.v, fw.active, fw.cl_idx, fw.lane_offset, fw.vfac,
                        fw.cl, fw.cl_ds, fw.car.wheelbase, fw.car.steer_gain, fw.car.v_max,
-                       self.a_lat, fw.car.width, 1, fw._traffic_act)
+                       self.a_lat, fw.car.width, 1, 1, fw._traffic_act)
         return fw._traffic_act[:, 1:]
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from racecav.sim import fast_kernels as K
 from racecav.sim.fast_world import FastWorld
 from racecav.sim.traffic import CenterlineDriver
 
@@ -99,18 +100,13 @@ class Expert:
         if self.scenario:
             err = np.angle(np.exp(1j * (p.start_pose[:, 2] - p.yaw[:, 0])))
             steer = HEADING_GAIN * err - YAW_RATE_GAIN * p.r[:, 0]
-        else:  # pure pursuit of the centerline, in the ego's direction
-            v = p.v[:, 0]
-            ld = 0.6 + 0.4 * v
-            step = np.maximum((ld / p.cl_ds).astype(np.int64), 1)
-            idx = (p.cl_idx[:, 0] + (-step if p.heading == "reversed" else step)) % len(p.cl)
-            tx, ty = p.cl[idx, 0], p.cl[idx, 1]
-            ca, sa = np.cos(p.yaw[:, 0]), np.sin(p.yaw[:, 0])
-            rx = p.x[:, 0] - 0.5 * car.wheelbase * ca
-            ry = p.y[:, 0] - 0.5 * car.wheelbase * sa
-            lx = ca * (tx - rx) + sa * (ty - ry)
-            ly = -sa * (tx - rx) + ca * (ty - ry)
-            steer = np.arctan(2.0 * car.wheelbase * ly / np.maximum(lx * lx + ly * ly, 1e-6))
+        else:  # the traffic driver's pure pursuit of the centerline, for car 0 in its direction
+            n = p.n_envs
+            out = np.zeros((n, 1, 2))
+            K.pure_pursuit(p.x[:, :1], p.y[:, :1], p.yaw[:, :1], p.v[:, :1], p.active[:, :1], p.cl_idx[:, :1],
+                           np.zeros((n, 1)), np.ones((n, 1)), p.cl, p.cl_ds, car.wheelbase, car.steer_gain,
+                           car.v_max, 3.0, car.width, 0, -1 if p.heading == "reversed" else 1, out)
+            steer = out[:, 0, 1] * car.steer_gain
         return np.clip(steer, car.delta_min, car.delta_max) / car.steer_gain
 
     def scores(self) -> np.ndarray:

@@ -397,7 +397,7 @@ def save_run_record(run_dir: Path) -> Path:
     """Copy what the report and a resume need into training/checkpoints/<run>/ (committed)."""
     dst = COMMITTED / run_dir.name
     dst.mkdir(parents=True, exist_ok=True)
-    for name in ("config.json", "progress.csv", "eval.csv", "eval.png", "best.json", "curriculum.csv",
+    for name in ("config.json", "progress.csv", "eval.csv", "eval.png", "best.json", "curriculum.csv", "imitation.csv",
                  "latest.json", "latest.zip", "latest.vecnorm.pkl"):
         if (run_dir / name).is_file():
             shutil.copyfile(run_dir / name, dst / name)

@@ -46,7 +46,7 @@ def _centerline_action(fw, out: np.ndarray) -> np.ndarray:
     fw.lane_offset[:, 0] = 0.0
     car = fw.car
     K.pure_pursuit(fw.x, fw.y, fw.yaw, fw.v, fw.active, fw.cl_idx, fw.lane_offset, fw.vfac, fw.cl, fw.cl_ds,
-                   car.wheelbase, car.steer_gain, car.v_max, 3.0, car.width, 0, out)
+                   car.wheelbase, car.steer_gain, car.v_max, 3.0, car.width, 0, 1, out)
     return out[:, 0]
 
 
