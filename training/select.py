@@ -649,7 +649,7 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-curriculum", "avoid-traffic"), ("avoid-wide", "avoid-curriculum"), ("avoid-lowlr", "avoid-wide"),
             ("avoid-stack3", "avoid-wide"), ("avoid-papertimed", "avoid-wide"), ("avoid-stride", "avoid-papertimed"),
             ("avoid-wide-stride", "avoid-wide"), ("avoid-dagger", "avoid-wide"),
-            ("avoid-dagger-ppo", "avoid-wide"))
+            ("avoid-dagger-ppo", "avoid-wide"), ("avoid-bc", "avoid-wide"), ("avoid-papertimed-lowlr", "avoid-papertimed"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
