@@ -860,7 +860,20 @@ def _ablation_markdown() -> str:
           "Its steering agrees with the newest labels within 0.05 rad on only 9-36 % of them while the "
           "loss on the aggregate falls from 12 to 0.7 (imitation.csv): in 40 % of the labels the planner "
           "picks a held steering manoeuvre over plain tracking for a gain of a few decimetres, targets the "
-          "policy's view does not determine. Stopped at 3.4 M, rejected.", ""]
+          "policy's view does not determine. Stopped at 3.4 M, rejected. "
+          "Row 16 (avoid-papertimed-lowlr) is row 10 (the paper-timed cars in the mix) at row 8's third of the "
+          "learning rate (`--lr 5e-5`), from row 7's checkpoint. Why: row 10 gained the paper-timed "
+          "left-to-right in its first 2 M samples and then drifted, as row 7 did at 1.5e-4 while row 8 at 5e-5 "
+          "held. 42 M samples in 82 min (9.3 k samples/s): it holds the conflict-timed scenarios and the suite "
+          "(conflict-timed 86-100 / 70-96 / 89-99 %, suite 89-92 % over its 22 evaluated checkpoints; at 4 M "
+          "99 / 96 / 98 % and 92 %, the best conflict-timed head-on of any row), but the paper-timed "
+          "left-to-right stays at 31-74 % (its training success on the paper-timed crossings from the left "
+          "rose from 67 to 83 % by 24 M and fell back to 72 %, curriculum.csv): scores 0.85-0.91, the best "
+          "(0.909 at 4 M and at 20 M) below row 7's 0.92. Rejected; its 4 M checkpoint is committed "
+          "(training/checkpoints/avoid-papertimed-lowlr/checkpoints/). In 8 traced paper-timed left-to-right "
+          "trials (PyBullet, a one-off script) the shipped policy failed 5 times, each by turning left into the "
+          "crossing road to pass behind a car that a straight ego would have passed ahead of: the two timings "
+          "look alike in its view until it has turned.", ""]
     for run, *_ in rows:
         if (COMMITTED / run / "eval.png").is_file():
             img = REPO / "docs" / "img" / f"training_eval_{run}.png"
