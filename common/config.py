@@ -401,11 +401,12 @@ class TrainConfig(Section):
     """dagger: share of the episodes the planner drives (DAgger's beta); the policy drives the
     rest. Every step is labelled with the planner's action either way."""
     expert_horizon_s: float = Field(2.5, gt=0)
-    """dagger: the planner's look-ahead (s)."""
+    """dagger, and overtake with bc_coef: the planner's look-ahead (s)."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)
-    """dagger: labelled samples kept (the newest; the aggregate is not checkpointed)."""
+    """dagger, and overtake with bc_coef: labelled samples kept (the newest; the aggregate is not
+    checkpointed)."""
     # overtake stage: PPO with the planner's labels as an auxiliary loss (training/imitation_term.py)
     bc_coef: float = Field(0.0, ge=0)
     """overtake: weight of the imitation of the planner after each PPO update (0: plain PPO)."""

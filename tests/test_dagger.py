@@ -134,6 +134,10 @@ def test_ppo_imitation_term_fits_the_planner_and_resumes(tmp_path):
     assert [(int(r[0]), int(r[1])) for r in rows] == [(64, 16), (192, 16)], rows
     assert all(np.isfinite(float(r[2])) for r in rows)
     assert load_run_config(run)[0].bc_coef == 1.0
+    # traffic the planner cannot predict: a clear refusal before any run folder is written
+    bad = ["train", "overtake", "--run-dir", str(tmp_path / "x"), "--preset", "fast", "--steps", "64",
+           "--driver", "policy:racing", "--bc-coef", "1"]
+    assert main(bad) == 2 and not (tmp_path / "x" / "config.json").exists()
 
     # the fit itself: on a fresh model, the loss on the labels it fitted falls
     tc = load_run_config(run)[0].model_copy(update={"bc_coef": 10.0, "bc_grad_steps": 40})

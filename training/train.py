@@ -292,6 +292,9 @@ def open_run(args, cfg, run_dir: Path):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
         return None
+    if tc.bc_coef > 0 and tc.env.n_obstacles and tc.env.driver != "centerline":
+        print("racecav train: --bc-coef needs traffic the planner can predict (--driver centerline)")
+        return None
     record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
