@@ -864,7 +864,7 @@ def _ablation_markdown() -> str:
           "Row 16 (avoid-papertimed-lowlr) is row 10 (the paper-timed cars in the mix) at row 8's third of the "
           "learning rate (`--lr 5e-5`), from row 7's checkpoint. Why: row 10 gained the paper-timed "
           "left-to-right in its first 2 M samples and then drifted, as row 7 did at 1.5e-4 while row 8 at 5e-5 "
-          "held. 42 M samples in 82 min (9.3 k samples/s): it holds the conflict-timed scenarios and the suite "
+          "held. 42 M samples in 82 min (a median 9.0 k samples/s): it holds the conflict-timed scenarios and the suite "
           "(conflict-timed 86-100 / 70-96 / 89-99 %, suite 89-92 % over its 22 evaluated checkpoints; at 4 M "
           "99 / 96 / 98 % and 92 %, the best conflict-timed head-on of any row), but the paper-timed "
           "left-to-right stays at 31-74 % (its training success on the paper-timed crossings from the left "
