@@ -16,7 +16,7 @@ import torch
 
 from racecav.common.scenario import load_scenario, scenario_names
 from racecav.sim.fast_world import FastWorld
-from racecav.training.dagger import action_bounds, imitation_loss
+from racecav.training.dagger import action_bounds, imitation_loss, mean_action
 from racecav.training.expert import Expert
 
 CONFLICT = [n for n in scenario_names() if load_scenario(n).conflict_timed]
@@ -153,7 +153,7 @@ def test_ppo_imitation_term_fits_the_planner_and_resumes(tmp_path):
 
     def loss():
         with torch.no_grad():
-            return float(imitation_loss(cb._mean_action(obs), torch.as_tensor(cb.act[fitted]), lo, hi,
+            return float(imitation_loss(mean_action(model.policy, obs), torch.as_tensor(cb.act[fitted]), lo, hi,
                                         torch.tensor([0.5, 0.15])))
 
     after = loss()

@@ -25,7 +25,6 @@ a manoeuvre rather than plain tracking.
 
 from __future__ import annotations
 
-import csv
 import logging
 import signal
 import time
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from racecav.training.runs import save_checkpoint, truncate_csv
+from racecav.training.runs import append_csv, save_checkpoint, truncate_csv
 
 log = logging.getLogger("racecav.train")
 
@@ -48,6 +47,14 @@ def action_bounds(car) -> tuple[np.ndarray, np.ndarray]:
     beyond the steering range are clipped by the actuation (common/vehicle.py)."""
     return (np.array([0.0, car.delta_min / car.steer_gain], np.float32),
             np.array([1.0, car.delta_max / car.steer_gain], np.float32))
+
+
+def mean_action(policy, obs):
+    """The SB3 policy's mean action (torch, (B, 2)) on normalised observations ``obs``."""
+    import torch
+
+    feats = policy.extract_features(torch.as_tensor(obs), policy.pi_features_extractor)
+    return policy.action_net(policy.mlp_extractor.forward_actor(feats))
 
 
 def imitation_loss(pred, label, lo, hi, scale):
@@ -104,10 +111,6 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     bar = tqdm(total=total, initial=samples, unit="sa", unit_scale=True, mininterval=2.0,
                dynamic_ncols=True, desc=run_dir.name) if progress else None
 
-    def mean_action(obs):
-        feats = policy.extract_features(torch.as_tensor(obs), policy.pi_features_extractor)
-        return policy.action_net(policy.mlp_extractor.forward_actor(feats))
-
     def save(final: bool) -> None:
         model.num_timesteps = samples
         save_checkpoint(run_dir, model, venv, wall0 + time.monotonic() - t0, final)
@@ -123,7 +126,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
                 label = np.concatenate([e.act() for e in experts])
                 man = np.concatenate([e.last_best != 0 for e in experts])
                 with torch.no_grad():
-                    student = mean_action(obs).numpy()
+                    student = mean_action(policy, obs).numpy()
                 steer = np.clip(student[:, 1], lo[1], hi[1]) * fast.world.car.steer_gain
                 agree += int((np.abs(steer - label[:, 1] * fast.world.car.steer_gain) < STEER_TOL).sum())
                 k = np.arange(head, head + n) % cap
@@ -148,7 +151,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
             losses = []
             for _ in range(tc.grad_steps):
                 j = rng.integers(0, size, tc.batch_size)
-                pred = mean_action(data_obs[j])
+                pred = mean_action(policy, data_obs[j])
                 loss = imitation_loss(pred, torch.as_tensor(data_act[j]), lo_t, hi_t, scale)
                 opt.zero_grad()
                 loss.backward()
@@ -161,7 +164,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
                    "scenario_success": round(succ / eps_s, 4) if eps_s else "",
                    "traffic_contacts": round(contacts / eps_t, 4) if eps_t else "",
                    "episodes": eps_s + eps_t, "dataset": size, "manoeuvres": round(float(data_man[:size].mean()), 4)}
-            _append(run_dir / "progress.csv", row)
+            append_csv(run_dir / "progress.csv", FIELDS, row)
             if bar is not None:
                 bar.set_postfix_str(f"loss {row['loss']:.3f} agree {row['steer_agree']:.2f} "
                                     f"success {row['scenario_success']}", refresh=False)
@@ -177,11 +180,3 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     log.info("%s at %d samples (%s)", run_dir, samples, "stopped by signal" if stop.requested else "done")
     return 0
 
-
-def _append(path: Path, row: dict) -> None:
-    new = not path.is_file() or path.stat().st_size == 0
-    with path.open("a", newline="") as f:
-        w = csv.DictWriter(f, FIELDS)
-        if new:
-            w.writeheader()
-        w.writerow(row)

@@ -20,13 +20,12 @@ newest labels, and the share of labels that are a manoeuvre rather than plain tr
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
 
-from racecav.training.dagger import LOSS_SCALE, STEER_TOL, action_bounds, imitation_loss
-from racecav.training.runs import truncate_csv
+from racecav.training.dagger import LOSS_SCALE, STEER_TOL, action_bounds, imitation_loss, mean_action
+from racecav.training.runs import append_csv, truncate_csv
 
 FIELDS = ["timesteps", "labels", "loss", "steer_agree", "manoeuvres"]
 
@@ -82,13 +81,6 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             self.step_in_rollout += 1
             return True
 
-        def _mean_action(self, obs):
-            import torch
-
-            p = self.model.policy
-            feats = p.extract_features(torch.as_tensor(obs), p.pi_features_extractor)
-            return p.action_net(p.mlp_extractor.forward_actor(feats))
-
         def _fit(self) -> None:
             import torch
 
@@ -99,13 +91,13 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             start, count = self.new
             k = np.arange(start, start + count) % len(self.obs)
             with torch.no_grad():
-                steer = np.clip(self._mean_action(norm(self.obs[k])).numpy()[:, 1], self.lo[1], self.hi[1])
+                steer = np.clip(mean_action(p, norm(self.obs[k])).numpy()[:, 1], self.lo[1], self.hi[1])
             agree = float(np.mean(np.abs(steer - self.act[k, 1]) * self.car.steer_gain < STEER_TOL)) if count else float("nan")
             p.set_training_mode(True)
             losses = []
             for _ in range(tc.bc_grad_steps):
                 j = self.rng.integers(0, self.size, tc.batch_size)
-                loss = tc.bc_coef * imitation_loss(self._mean_action(norm(self.obs[j])),
+                loss = tc.bc_coef * imitation_loss(mean_action(p, norm(self.obs[j])),
                                                    torch.as_tensor(self.act[j]), lo, hi, scale)
                 p.optimizer.zero_grad()
                 loss.backward()
@@ -113,13 +105,8 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 p.optimizer.step()
                 losses.append(float(loss.detach()) / tc.bc_coef)
             p.set_training_mode(False)
-            new = not self.path.is_file() or self.path.stat().st_size == 0
-            with self.path.open("a", newline="") as f:
-                w = csv.DictWriter(f, FIELDS)
-                if new:
-                    w.writeheader()
-                w.writerow({"timesteps": self.model.num_timesteps, "labels": self.size,
-                            "loss": round(float(np.mean(losses)), 5), "steer_agree": round(agree, 4),
-                            "manoeuvres": round(float(self.man[:self.size].mean()), 4)})
+            append_csv(self.path, FIELDS, {"timesteps": self.model.num_timesteps, "labels": self.size,
+                                           "loss": round(float(np.mean(losses)), 5), "steer_agree": round(agree, 4),
+                                           "manoeuvres": round(float(self.man[:self.size].mean()), 4)})
 
     return _ImitationTerm()

@@ -69,3 +69,13 @@ def truncate_csv(path: Path, timesteps: int, fields: list[str]) -> None:
         w = csv.DictWriter(f, fields, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
+
+
+def append_csv(path: Path, fields: list[str], row: dict) -> None:
+    """Append one row to a run's CSV, with the header if the file is new or empty."""
+    new = not path.is_file() or path.stat().st_size == 0
+    with path.open("a", newline="") as f:
+        w = csv.DictWriter(f, fields)
+        if new:
+            w.writeheader()
+        w.writerow(row)
