@@ -47,3 +47,29 @@ def test_select_keeps_family_columns(tmp_path, monkeypatch):
     fields2, rows2 = _eval_rows(run)
     assert fields2 == fields and rows2 == rows
     assert (tmp_path / "committed" / run.name / "eval.csv").is_file()
+
+
+@pytest.mark.timeout(300)
+def test_references_never_evade(tmp_path):
+    """`racecav train references`: the non-evading cars on the selection cells. Full throttle wins
+    the paper-timed side scenarios by speed and loses head-to-head; 1 m/s loses all three."""
+    from racecav.cli import main
+    from racecav.common.scenario import SCENARIOS_DIR
+
+    scen = tmp_path / "scenarios"
+    scen.mkdir()
+    shutil.copy(SCENARIOS_DIR / "conflict-left-to-right.toml", scen / "conflict-left-to-right.toml")
+    out = tmp_path / "references.csv"
+    assert main(["train", "references", "--trials", "2", "--suite-episodes", "8", "--suite", str(scen),
+                 "--out", str(out)]) == 0
+    with out.open() as f:
+        rows = {r["reference"]: r for r in csv.DictReader(f)}
+    slow, fast = rows["straight 1 m/s"], rows["straight, full throttle"]
+    assert float(slow["a_throttle"]) < 0.5 and float(fast["a_throttle"]) == 1.0
+    paper = ("right-to-left", "head-to-head", "left-to-right")
+    assert [float(slow[f"{s}_success"]) for s in paper] == [0.0, 0.0, 0.0]
+    assert [float(fast[f"{s}_success"]) for s in paper] == [1.0, 0.0, 1.0]
+    for r in (slow, fast):  # a synchronised crossing meets a car that holds its course
+        assert float(r["conflict-left-to-right_success"]) == 0.0 and float(r["suite_success"]) == 0.0
+        cells = [float(r[k]) for k in ("suite_success", "conflict_success", "intersection_success")]
+        assert float(r["score"]) == pytest.approx(sum(cells) / 3)

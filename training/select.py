@@ -1,4 +1,4 @@
-"""``racecav train select|ship|report``: checkpoint evaluation, shipping and the results page.
+"""``racecav train select|references|ship|report``: checkpoint evaluation, shipping and the results page.
 
 - ``select --run-dir DIR``: every checkpoint (or the last ``--last K``) of a run is evaluated on
   held-out seeds of its own training env (fast world: mean return, contact rate) and on the three
@@ -12,6 +12,9 @@
   common/data/policies/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
   settings and evaluation to training/checkpoints/RUN/ (committed: the report and ``--resume``
   across sessions need them); ``select`` saves that record too, for runs that are not shipped.
+- ``references``: the non-evading references (straight at 1 m/s and at full throttle) scored on
+  the same selection split as an avoidance run's checkpoints -> training/checkpoints/references.csv,
+  the ablation table's reference rows.
 - ``report``: >= 100 trials per scenario for each shipped policy, learning curves, throughput,
   wall time -> docs/training.md (+ docs/img/training_*.png); results also go into the policies'
   JSON metadata.
@@ -55,6 +58,13 @@ def add_subcommands(sub) -> None:
     p.add_argument("--suite-episodes", type=int, default=512, help="runs with --scenarios: fast-world episodes "
                    "on the suite's train split (selection seeds) per checkpoint")
     p.set_defaults(stage="select")
+    p = sub.add_parser("references", help="the non-evading references (straight at 1 m/s, at full throttle) "
+                       "on select's selection split -> training/checkpoints/references.csv (the ablation's reference rows)")
+    p.add_argument("--trials", type=int, default=100, help="PyBullet trials per scenario")
+    p.add_argument("--suite-episodes", type=int, default=512, help="fast-world episodes on the suite's train split")
+    p.add_argument("--suite", default="conflicts", help="the conflict suite the avoidance runs are selected on")
+    p.add_argument("--out", type=Path, default=REFERENCES_CSV)
+    p.set_defaults(stage="references")
     p = sub.add_parser("ship", help="export a checkpoint as common/data/policies/NAME.{npz,json,zip}")
     p.add_argument("--run-dir", type=Path, required=True)
     p.add_argument("--checkpoint", default="best", help="best (from eval.csv) | latest | STEP")
@@ -68,7 +78,7 @@ def add_subcommands(sub) -> None:
 
 
 def run(args, cfg) -> int:
-    return {"select": select, "ship": ship, "report": report}[args.train_cmd](args, cfg)
+    return {"select": select, "references": references, "ship": ship, "report": report}[args.train_cmd](args, cfg)
 
 
 # ----------------------------------------------------------------------------------- evaluation
@@ -201,6 +211,80 @@ def eval_scenario(policy, scenario: str, trials: int, seed0: int, record: int = 
     return out
 
 
+def selection_cells(policy, env_cfg, trials: int, suite_episodes: int, conflict: bool) -> dict:
+    """A policy on the selection split: the paper-timed scenarios (success, contact, progress) and,
+    for an avoidance run (``conflict``), the conflict-timed scenarios, the conflict suite's train
+    split in the fast world, and the score (mean of suite, conflict-timed and paper-timed success)."""
+    row, rates = {}, []
+    for sc in SCENARIOS:
+        r = eval_scenario(policy, sc, trials, SELECT_SEED)
+        row.update({f"{sc}_success": r["success"], f"{sc}_contact": r["contact"],
+                    f"{sc}_progress": round(r["progress"], 3)})
+        rates.append(r["success"])
+    row["intersection_success"] = sum(rates) / len(rates)
+    row["trials"] = trials
+    if conflict:
+        crates = [eval_scenario(policy, sc, trials, SELECT_SEED)["success"] for sc in CONFLICT_SCENARIOS]
+        row.update({f"{sc}_success": r for sc, r in zip(CONFLICT_SCENARIOS, crates)})
+        row["conflict_success"] = sum(crates) / len(crates)
+        # the first scenario source is the conflict suite; any others (e.g. clock-timed traffic,
+        # which a non-evading car may pass) are only training mix
+        sel_env = env_cfg.model_copy(update={"scenarios": env_cfg.scenarios.split(",")[0].strip()})
+        row.update(eval_suite_fast(policy, sel_env, suite_episodes))
+        row["score"] = (row["suite_success"] + row["conflict_success"] + row["intersection_success"]) / 3
+    return row
+
+
+class ConstantAction:
+    """A driver that never evades: the same action every step, whatever it sees (the trivial
+    references, as the scripted controllers of ``racecav eval``)."""
+
+    lidar, obs_stack, obs_stride, brake_below = None, 1, 1, None  # the default (paper) view; it ignores it anyway
+
+    def __init__(self, a_throttle: float):
+        import numpy as np
+
+        self.action = np.array([a_throttle, 0.0], np.float32)
+
+    def __call__(self, obs):
+        import numpy as np
+
+        return np.broadcast_to(self.action, (*np.shape(obs)[:-1], 2)).copy()
+
+
+def reference_drivers() -> dict[str, ConstantAction]:
+    """The non-evading references: straight at the throttle that holds registry.HOLD_SPEED (the
+    scenarios' ego start speed) and straight at full throttle (about the policies' speed)."""
+    from racecav.common.vehicle import load_car, throttle_for_speed
+
+    car = load_car()
+    hold = float(throttle_for_speed(registry.HOLD_SPEED, car, car.agent_speed_scale))
+    return {f"straight {registry.HOLD_SPEED:g} m/s": ConstantAction(hold), "straight, full throttle": ConstantAction(1.0)}
+
+
+REFERENCES_CSV = COMMITTED / "references.csv"
+"""The references on the selection split (``racecav train references``), beside the ablation."""
+
+
+def references(args, cfg) -> int:
+    """The non-evading references scored like a checkpoint of an avoidance run: the selection
+    split's cells and score, so the ablation's rows have their trivial references on the same seeds."""
+    from tqdm import tqdm
+
+    from racecav.common.config import EnvConfig
+
+    env_cfg = EnvConfig(scenarios=args.suite, scenario_share=1.0)
+    rows = []
+    for name, drv in tqdm(reference_drivers().items(), desc="references", unit="driver"):
+        rows.append({"reference": name, "a_throttle": float(drv.action[0]),
+                     **selection_cells(drv, env_cfg, args.trials, args.suite_episodes, conflict=True)})
+        log.info("%s: score %.3f", name, rows[-1]["score"])
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    _write_csv(args.out, fields, rows)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _checkpoints(run_dir: Path) -> list[Path]:
     return sorted((run_dir / "checkpoints").glob("step_*.zip"))
 
@@ -249,25 +333,8 @@ def select(args, cfg) -> int:
         pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar, tc.env.obs_stride)
         row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, tc.env, args.episodes)}
         if not args.no_intersection:
-            rates = []
-            for sc in SCENARIOS:
-                r = eval_scenario(pol, sc, args.trials, SELECT_SEED)
-                row.update({f"{sc}_success": r["success"], f"{sc}_contact": r["contact"],
-                            f"{sc}_progress": round(r["progress"], 3)})
-                rates.append(r["success"])
-            row["intersection_success"] = sum(rates) / len(rates)
-            row["trials"] = args.trials
-            if conflict:
-                crates = [eval_scenario(pol, sc, args.trials, SELECT_SEED)["success"] for sc in CONFLICT_SCENARIOS]
-                row.update({f"{sc}_success": r for sc, r in zip(CONFLICT_SCENARIOS, crates)})
-                row["conflict_success"] = sum(crates) / len(crates)
-                # the first scenario source is the conflict suite; any others (e.g. clock-timed
-                # traffic, which a non-evading car may pass) are only training mix
-                sel_env = tc.env.model_copy(update={"scenarios": tc.env.scenarios.split(",")[0].strip()})
-                suite = eval_suite_fast(pol, sel_env, args.suite_episodes)
-                row.update(suite)
-                fields += [k for k in suite if k not in fields]
-                row["score"] = (row["suite_success"] + row["conflict_success"] + row["intersection_success"]) / 3
+            row.update(selection_cells(pol, tc.env, args.trials, args.suite_episodes, conflict))
+            fields += [k for k in row if k.startswith("suite_") and k not in fields]
         rows.append(row)
         seen = {int(r["timesteps"]) for r in rows}
         _write_csv(out, fields, sorted(rows + [r for n, r in done.items() if n not in seen],
@@ -704,11 +771,10 @@ def _ablation_markdown() -> str:
          f"(SELECT_SEED = {SELECT_SEED} + k), the conflict-timed and paper-timed scenarios "
          f"({rows[0][2].get('trials')} trials each). The test split and the report seeds are never used "
          "here. Score = mean of suite, conflict-timed and paper-timed success; a change is kept only if "
-         "it raises the score. The trivial references are not rerun on these seeds; on the test seeds "
-         "(docs/results.md, 200 trials per cell) a straight car scores 0 % on the suite and 0-4 % on the "
-         "conflict-timed three at 1 m/s and at full throttle, and 0 / 0 / 0 % (1 m/s) and 100 / 0 / 100 % "
-         "(full throttle) on the paper-timed three: the paper-timed side columns are the ones speed alone "
-         "wins.", "",
+         "it raises the score. The last two rows are the trivial references on the same cells and seeds "
+         "(`racecav train references --trials 100`, training/checkpoints/references.csv): a car that "
+         "never evades, straight at the throttle that holds 1 m/s and at full throttle. The paper-timed "
+         "side columns are the ones speed alone wins.", "",
          "| run | change | best checkpoint | score | score of the last checkpoint | suite | " + " | ".join(fams)
          + " | conflict R-L / H-H / L-R | paper R-L / H-H / L-R |",
          "|---|---|---|---:|---:|---:|" + "---:|" * len(fams) + "---|---|"]
@@ -717,6 +783,14 @@ def _ablation_markdown() -> str:
                  f"{pct(b['suite_success'])} | " + " | ".join(pct(b.get(f"suite_{f}", 0)) for f in fams)
                  + " | " + " / ".join(pct(b[f"{s}_success"]) for s in CONFLICT_SCENARIOS) + " | "
                  + " / ".join(pct(b[f"{s}_success"]) for s in SCENARIOS) + " |")
+    if REFERENCES_CSV.is_file():
+        with REFERENCES_CSV.open() as f:
+            for r in csv.DictReader(f):
+                L.append(f"| *{r['reference']}* | reference: never evades (a_T = {float(r['a_throttle']):.2f}, "
+                         f"steering 0) | - | {pct(r['score'])} | - | {pct(r['suite_success'])} | "
+                         + " | ".join(pct(r.get(f"suite_{f}") or 0) for f in fams)
+                         + " | " + " / ".join(pct(r[f"{s}_success"]) for s in CONFLICT_SCENARIOS) + " | "
+                         + " / ".join(pct(r[f"{s}_success"]) for s in SCENARIOS) + " |")
     L += ["", "Without a progress term the paper's reward (5 T^2 per step, a contact ends the episode) "
           "pays as much for turning away from a conflict and circling in the crossing as for driving "
           "on: the first row's policy learned exactly that (\"short\" trials: no contact, too little "
