@@ -125,15 +125,24 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
 
 
 def wait_alive(session, car: str, service: str, timeout: float = 30.0, proc: subprocess.Popen | None = None) -> None:
-    """Block until ``service`` holds its liveliness token; raise if it dies or times out."""
-    from racecav.common.client import live_services
+    """Block until ``service`` holds its liveliness token; raise if it dies or times out.
+
+    With ``proc``: until that process answers the status query. A token of the same name may
+    still be the previous instance's (killed, and the router has not yet dropped it)."""
+    from racecav.common.client import get_status, live_services
 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc is not None and proc.poll() is not None:
             raise RuntimeError(f"{service} exited with code {proc.returncode} before joining the bus")
         if service in live_services(session, car, timeout=0.5):
-            return
+            if proc is None:
+                return
+            try:
+                if get_status(session, car, service, timeout=0.5).pid == proc.pid:
+                    return
+            except RuntimeError:  # no status reply yet
+                pass
         time.sleep(0.1)
     raise TimeoutError(f"{service} not alive on car {car} after {timeout} s")
 
