@@ -119,9 +119,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(p)
     add_stage_flags(p, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
-    from racecav.training import select  # cheap module: argument definitions only
+    from racecav.training import probe, select  # cheap modules: argument definitions only
 
     select.add_subcommands(sub)
+    probe.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -137,6 +138,10 @@ def run(args, cfg) -> int:
         return train_dagger(args, cfg)
     if args.train_cmd == "export":
         return export_onnx(args)
+    if args.train_cmd == "probe":
+        from racecav.training.probe import probe
+
+        return probe(args, cfg)
     from racecav.training import select
 
     return select.run(args, cfg)
