@@ -952,7 +952,14 @@ def _ablation_markdown() -> str:
           "(training/checkpoints/avoid-papertimed-lowlr/checkpoints/). In 8 traced paper-timed left-to-right "
           "trials (PyBullet, a one-off script) the shipped policy failed 5 times, each by turning left into the "
           "crossing road to pass behind a car that a straight ego would have passed ahead of: the two timings "
-          "look alike in its view until it has turned.", ""]
+          "look alike in its view until it has turned. "
+          "Row 17 (avoid-stride2) is row 11 with half its baseline: two scans 0.2 s apart (`--obs-stride 2`) "
+          "on row 10, from row 7's checkpoint (re-strided as in row 11). Why: row 11's four-fold baseline "
+          "changed what the old first layer sees the most; a two-fold one might keep row 7's conflicts while "
+          "showing a slower bearing drift. 24.5 M samples in 48 min: scores 0.80-0.90 over 10 checkpoints "
+          "(best 0.90 at 22 M: conflict-timed 100 / 88 / 96 %, paper-timed 97 / 98 / 70 %, suite 87 % on the "
+          "train split), the paper-timed left-to-right at 22-70 %: below row 7, rejected. The probe below "
+          "says why no stride was going to help.", ""]
     probe_md = COMMITTED / "probe-cross-left.md"
     if probe_md.is_file():
         L += ["### When the view tells the two timings apart", "",
