@@ -13,7 +13,7 @@ says when it commits. ``--out X.md`` writes the tables (docs/training.md embeds
 training/checkpoints/probe-cross-left.md), ``--out X.csv`` the probe rows.
 
 Scenario convention: the conflict point lies on the ego's road at x = 0, the ego starts at x < 0
-heading +x (the paper's scenarios and the generated crossing families).
+heading +x (the paper's scenarios and the generated crossing and head-on families).
 """
 
 from __future__ import annotations
