@@ -972,7 +972,7 @@ def _ablation_markdown() -> str:
     probe_md = COMMITTED / "probe-cross-left.md"
     if probe_md.is_file():
         L += ["### When the view tells the two timings apart", "",
-              "Rows 10-12 and 16 trade the paper-timed crossing from the left against the conflict-timed one. "
+              "Rows 10-12 and 16-18 trade the paper-timed crossing from the left against the conflict-timed one. "
               "`racecav train probe` (training/probe.py) measures when the policy's view can tell them apart: "
               "the shipped avoid drives the suites' cross-left train files of both timings in the fast world; "
               "at the first step its ego is within 3, 2.5, 2 and 1.5 m of the conflict point, a fresh MLP of "
