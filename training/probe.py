@@ -19,10 +19,7 @@ heading +x (the paper's scenarios and the generated crossing and head-on familie
 from __future__ import annotations
 
 import csv
-import logging
 from pathlib import Path
-
-log = logging.getLogger("racecav.train")
 
 HIDDEN = 64
 """The probe's width: the shipped policies' (SB3 MlpPolicy net_arch [64, 64], tanh)."""
@@ -40,7 +37,7 @@ def add_subcommands(sub) -> None:
     p.add_argument("--strides", default="0,1,2,4,8",
                    help="probe views: 0 = the newest scan alone, s = it and the scan s control periods older")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, help="also write the table as CSV")
+    p.add_argument("--out", type=Path, help="also write the tables (X.md) or the probe rows (X.csv)")
     p.set_defaults(stage="probe")
 
 
@@ -143,8 +140,8 @@ def probe(args, cfg) -> int:
         raise SystemExit(f"racecav train probe: --sources: expected two sources, got {sources}")
     distances = _floats(args.distances, "--distances")
     strides = [int(s) for s in _floats(args.strides, "--strides")]
-    if any(s < 0 for s in strides) or any(d <= 0 for d in distances):
-        raise SystemExit("racecav train probe: --strides must be >= 0 and --distances > 0")
+    if any(s < 0 for s in strides) or any(d <= 0 for d in distances) or args.n < 1:
+        raise SystemExit("racecav train probe: --strides must be >= 0, --distances > 0 and --n >= 1")
     policy = load_policy(args.policy)
     data = [collect(policy, src, args.family, args.n, distances, strides, args.seed + 7919 * k)
             for k, src in enumerate(sources)]
