@@ -59,7 +59,7 @@ def collect(policy, source: str, family: str, n: int, distances, strides, seed: 
     from racecav.common.config import EnvConfig
     from racecav.training.vec_env import FastVecEnv
 
-    md = policy.metadata
+    md = getattr(policy, "metadata", {})  # none: a reference driver (training/select.ConstantAction)
     cfg = EnvConfig(scenarios=source, scenario_share=1.0, lidar=md.get("lidar", "paper"),
                     obs_stack=policy.obs_stack, obs_stride=int(md.get("obs_stride", 1)))
     env = FastVecEnv(n_envs=n, config=cfg, seed=seed)
@@ -133,6 +133,7 @@ def probe(args, cfg) -> int:
     import torch
 
     from racecav.common.policy import load_policy
+    from racecav.training.select import reference_drivers
 
     torch.set_num_threads(1)
     sources = [s.strip() for s in args.sources.split(",") if s.strip()]
@@ -145,6 +146,11 @@ def probe(args, cfg) -> int:
     policy = load_policy(args.policy)
     data = [collect(policy, src, args.family, args.n, distances, strides, args.seed + 7919 * k)
             for k, src in enumerate(sources)]
+    # the non-evading references on the same worlds and seeds, beside the policy's success
+    for k, (src, dat) in enumerate(zip(sources, data)):
+        dat["references"] = {name: float(collect(drv, src, args.family, args.n, distances[:1], [0],
+                                                 args.seed + 7919 * k)["success"].mean())
+                             for name, drv in reference_drivers().items()}
     rows = [{"distance_m": d, "stride": s, **fit_probe(data[0]["views"][(d, s)], data[1]["views"][(d, s)],
                                                       data[0]["speed"][d], data[1]["speed"][d], seed=args.seed)}
             for d in distances for s in strides]
@@ -168,10 +174,12 @@ def _markdown(args, sources, data, distances, rows) -> str:
 
     L = [f"`racecav train probe --policy {args.policy} --sources {args.sources} --family '{args.family}' --n {args.n} "
          f"--distances {args.distances} --strides {args.strides} --seed {args.seed}`", "",
-         "| source | episodes | success | " + " | ".join(f"policy's yaw at {d:g} m (deg)" for d in distances) + " |",
-         "|---|---:|---:|" + "---:|" * len(distances)]
+         "| source | episodes | success | " + " | ".join(f"{r}, no evasion" for r in data[0]["references"]) + " | "
+         + " | ".join(f"policy's yaw at {d:g} m (deg)" for d in distances) + " |",
+         "|---|---:|---:|" + "---:|" * (len(data[0]["references"]) + len(distances))]
     for src, dat in zip(sources, data):
         L.append(f"| {src} | {len(dat['success'])} | {100 * dat['success'].mean():.0f} % | "
+                 + " | ".join(f"{100 * v:.0f} %" for v in dat["references"].values()) + " | "
                  + " | ".join(f"{np.degrees(np.nanmean(dat['yaw'][d])):.1f}" for d in distances) + " |")
     L += ["", "| ego to conflict point (m) | probe's view | speed band (m/s) | per class | speed alone | probe train | "
           "probe held-out |", "|---:|---|---|---:|---:|---:|---:|"]
