@@ -346,6 +346,13 @@ class EnvConfig(Section):
     earns as much as driving on."""
     contact_penalty: float = Field(0.0, le=0)
     """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
+    lane_keeping: float = Field(0.0, ge=0)
+    """Scenario episodes of the fast VecEnv: reward -lane_keeping x |a_delta - tracking steer| at
+    each step where the ego would pass free by tracking its road at full throttle (the
+    privileged planner's look-ahead, training/lane_keeping.py). 0: off (the paper's reward).
+    It pays for keeping the lane until a conflict is certain, so an evasion waits until needed."""
+    lane_keeping_horizon_s: float = Field(2.5, gt=0)
+    """The look-ahead (s) of lane_keeping's "the lane is free"."""
     brake_below: float | None = Field(None, gt=-1, le=0)
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The

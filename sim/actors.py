@@ -173,10 +173,11 @@ class ActorBatch:
             self.released |= sel  # a scripted speed change ends any synchronisation
         self.s = np.where(self.started, self.s + self.v * np.maximum(moving_dt, 0.0), self.s)
         self.t += dt
-        self._poses(np.arange(self.n_envs))
+        self._poses(slice(None))  # views, not copies: this runs every physics substep
 
-    def _poses(self, envs: np.ndarray) -> None:
-        """Pose at arc length s on each actor's polyline (straight on past its end)."""
+    def _poses(self, envs) -> None:
+        """Pose at arc length s on each actor's polyline (straight on past its end); ``envs``: an
+        index array or a slice."""
         s = self.s[envs]
         cum = self.cum[envs]
         k = np.clip((cum <= s[..., None]).sum(-1) - 1, 0, self.n_pts[envs] - 2)

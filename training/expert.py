@@ -61,9 +61,11 @@ class Expert:
     :param world: the FastWorld whose agents it plans for (read, never changed).
     :param horizon_s: look-ahead (s).
     :param envs: plan for these of its worlds only (default: all of them).
+    :param track_only: the first candidate only (plain tracking): ``scores`` then tells whether the
+        ego's lane is free (training/lane_keeping.py).
     """
 
-    def __init__(self, world: FastWorld, horizon_s: float = 2.5, envs=None):
+    def __init__(self, world: FastWorld, horizon_s: float = 2.5, envs=None, track_only: bool = False):
         scen = world.actors is not None
         if not scen and world.n_obstacles and not isinstance(world.driver, CenterlineDriver):
             # the copies must move the traffic as the world does; a policy driver would need scans
@@ -71,7 +73,7 @@ class Expert:
         self.src = world
         self.envs = np.arange(world.n_envs) if envs is None else np.asarray(envs, dtype=np.int64)
         self.n = len(self.envs)
-        self.cands = candidates(world.car)
+        self.cands = candidates(world.car)[:1] if track_only else candidates(world.car)
         self.k = len(self.cands)
         self.h = int(round(horizon_s / world.control_period))
         self.plan = FastWorld(n_envs=self.n * self.k, world=world.world, car=world.car,

@@ -746,7 +746,7 @@ def _ablation_markdown() -> str:
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
-                "curriculum", "lidar") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
+                "curriculum", "lidar", "lane_keeping", "lane_keeping_horizon_s") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]) or "-"
         if prev is not None:

@@ -51,7 +51,8 @@ IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert_horizon
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
-             "contact_penalty": "--contact-penalty",
+             "contact_penalty": "--contact-penalty", "lane_keeping": "--lane-keeping",
+             "lane_keeping_horizon_s": "--lane-keeping-horizon",
              "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
              "lidar": "--lidar"}
 """EnvConfig fields that are flags (field -> flag)."""

@@ -86,7 +86,7 @@ class FastVecEnv(VecEnv):
                  scenarios: str | None = None, scenario_share: float | None = None,
                  contact_penalty: float | None = None, obs_stack: int | None = None,
                  progress_reward: float | None = None, brake_below: float | None = None,
-                 seed: int | None = None):
+                 lane_keeping: float | None = None, seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -95,7 +95,8 @@ class FastVecEnv(VecEnv):
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
                                      n_envs=n_envs, parallel=parallel, scenarios=scenarios,
                                      scenario_share=scenario_share, contact_penalty=contact_penalty,
-                                     obs_stack=obs_stack, progress_reward=progress_reward, brake_below=brake_below)
+                                     obs_stack=obs_stack, progress_reward=progress_reward, brake_below=brake_below,
+                                     lane_keeping=lane_keeping)
         # the batch: traffic worlds first, then one scenario world per scenario world geometry
         self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
         self.world = self.worlds[0]
@@ -116,6 +117,12 @@ class FastVecEnv(VecEnv):
         # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
         self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
         self.curriculum = FamilyCurriculum(self.worlds) if self.settings.curriculum and self.is_scenario.any() else None
+        self.lane_keeping = None
+        if self.settings.lane_keeping and self.is_scenario.any():
+            from racecav.training.lane_keeping import LaneKeeping
+
+            self.lane_keeping = LaneKeeping(self.worlds, self.slices, self.settings.lane_keeping,
+                                            self.settings.lane_keeping_horizon_s)
         if seed is not None:
             self.seed(seed)
 
@@ -145,6 +152,8 @@ class FastVecEnv(VecEnv):
 
     def step_wait(self) -> VecEnvStepReturn:
         obs_parts, thr, a_d, col, trunc, succ, dprog = [], [], [], [], [], [], []
+        # from the state the actions are taken in
+        lane = self.lane_keeping.penalty(self._actions) if self.lane_keeping is not None else None
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
             a = self._actions[sl]
@@ -165,6 +174,8 @@ class FastVecEnv(VecEnv):
             rewards = rewards + np.float32(self.settings.contact_penalty) * collided
         if self.settings.progress_reward:
             rewards = rewards + (self.settings.progress_reward * np.concatenate(dprog)).astype(np.float32)
+        if lane is not None:
+            rewards = rewards + lane
         self.a_prev[:] = a_delta
         self._stack[:, 1:] = self._stack[:, :-1]
         self._stack[:, 0] = obs
