@@ -29,3 +29,14 @@ def test_probe_is_at_chance_on_one_source_and_separates_two_timings(tmp_path):
     two = _probe(tmp_path, "left-to-right,conflict-left-to-right", "two")
     for r in two:  # 1.5 m before the crossing the two timings differ in what the scan shows
         assert float(r["probe_heldout"]) > 0.8 and float(r["probe_heldout"]) > float(r["speed_alone"]) + 0.1, r
+
+
+@pytest.mark.timeout(300)
+def test_late_decision_planner_passes_from_the_start_and_fails_when_held_straight_too_long():
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.probe import late_decision
+
+    conflict = late_decision(str(SCENARIOS_DIR / "conflict-left-to-right.toml"), "", 16, [float("inf"), 0.5], 1)
+    assert conflict == {float("inf"): 1.0, 0.5: 0.0}  # a decision 0.5 m out is too late for a car timed to meet
+    paper = late_decision(str(SCENARIOS_DIR / "left-to-right.toml"), "", 16, [0.5], 1)
+    assert paper == {0.5: 1.0}  # the paper's timing: a straight fast ego passes ahead

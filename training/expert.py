@@ -55,6 +55,24 @@ def candidates(car) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
+def tracking_steer(p: FastWorld) -> np.ndarray:
+    """(N,) the tracking steer action of every world's ego: a damped hold of the ego's initial
+    heading in a scenario world, the traffic driver's pure pursuit of the centerline (in the
+    ego's direction) in a traffic world."""
+    car = p.car
+    if p.actors is not None:
+        err = np.angle(np.exp(1j * (p.start_pose[:, 2] - p.yaw[:, 0])))
+        steer = HEADING_GAIN * err - YAW_RATE_GAIN * p.r[:, 0]
+    else:
+        n = p.n_envs
+        out = np.zeros((n, 1, 2))
+        K.pure_pursuit(p.x[:, :1], p.y[:, :1], p.yaw[:, :1], p.v[:, :1], p.active[:, :1], p.cl_idx[:, :1],
+                       np.zeros((n, 1)), np.ones((n, 1)), p.cl, p.cl_ds, car.wheelbase, car.steer_gain,
+                       car.v_max, 3.0, car.width, 0, -1 if p.heading == "reversed" else 1, out)
+        steer = out[:, 0, 1] * car.steer_gain
+    return np.clip(steer, car.delta_min, car.delta_max) / car.steer_gain
+
+
 class Expert:
     """The planner of one FastWorld (a traffic or a scenario world of a FastVecEnv batch).
 
@@ -98,18 +116,7 @@ class Expert:
 
     def _track(self) -> np.ndarray:
         """(N*K,) tracking steer action of every planning world's ego."""
-        p, car = self.plan, self.plan.car
-        if self.scenario:
-            err = np.angle(np.exp(1j * (p.start_pose[:, 2] - p.yaw[:, 0])))
-            steer = HEADING_GAIN * err - YAW_RATE_GAIN * p.r[:, 0]
-        else:  # the traffic driver's pure pursuit of the centerline, for car 0 in its direction
-            n = p.n_envs
-            out = np.zeros((n, 1, 2))
-            K.pure_pursuit(p.x[:, :1], p.y[:, :1], p.yaw[:, :1], p.v[:, :1], p.active[:, :1], p.cl_idx[:, :1],
-                           np.zeros((n, 1)), np.ones((n, 1)), p.cl, p.cl_ds, car.wheelbase, car.steer_gain,
-                           car.v_max, 3.0, car.width, 0, -1 if p.heading == "reversed" else 1, out)
-            steer = out[:, 0, 1] * car.steer_gain
-        return np.clip(steer, car.delta_min, car.delta_max) / car.steer_gain
+        return tracking_steer(self.plan)
 
     def scores(self) -> np.ndarray:
         """(n, K) each candidate's score from the source world's current state."""

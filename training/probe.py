@@ -9,7 +9,10 @@ difference the view holds at that distance (0.5: none; it is a lower bound, the 
 the episodes run). Episodes are matched on the ego's speed (the overlap of the two sources' 10-90 %
 ranges) and balanced, and "speed alone" is the best accuracy of a speed threshold, so a gap the
 speed explains is not read as a view difference. The policy's own turn at each distance (mean yaw)
-says when it commits. ``--out X.md`` writes the tables (docs/training.md embeds
+says when it commits. Beside it, the privileged planner (training/expert.py), held straight on
+its road at full throttle until its ego is within each distance and free from there, says
+whether a decision that late can still pass both sources (``--late-n`` worlds per cell).
+``--out X.md`` writes the tables (docs/training.md embeds
 training/checkpoints/probe-cross-left.md), ``--out X.csv`` the probe rows.
 
 Scenario convention: the conflict point lies on the ego's road at x = 0, the ego starts at x < 0
@@ -36,6 +39,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--distances", default="3,2.5,2,1.5", help="ego distances to the conflict point (m)")
     p.add_argument("--strides", default="0,1,2,4,8",
                    help="probe views: 0 = the newest scan alone, s = it and the scan s control periods older")
+    p.add_argument("--late-n", type=int, default=256,
+                   help="worlds per source and distance for the planner held straight until that distance (0: skip)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, help="also write the tables (X.md) or the probe rows (X.csv)")
     p.set_defaults(stage="probe")
@@ -91,6 +96,41 @@ def collect(policy, source: str, family: str, n: int, distances, strides, seed: 
             "yaw": {d: v[keep] for d, v in yaw.items()}, "success": success[keep]}
 
 
+def late_decision(source: str, family: str, n: int, distances, seed: int) -> dict[float, float]:
+    """Success of the privileged planner held straight (tracking its road at full throttle) until
+    its ego is within each distance of the conflict point, free from there: can a decision that
+    late still pass the source's files? Distance inf: the planner from the start."""
+    import numpy as np
+
+    from racecav.common.scenario import load_scenario, scenario_sources
+    from racecav.sim.fast_world import FastWorld
+    from racecav.training.expert import Expert, tracking_steer
+
+    scs = [sc for sc in (load_scenario(f) for f, _fam in scenario_sources(source, "train")) if sc.name.startswith(family)]
+    if not scs:
+        raise SystemExit(f"racecav train probe: no scenario of {source!r} starts with {family!r}")
+    out = {}
+    for d in distances:
+        success = []
+        for k, world in enumerate(sorted({sc.world for sc in scs})):  # one FastWorld per world geometry
+            fw = FastWorld(n_envs=n, scenarios=[sc for sc in scs if sc.world == world], seed=seed + k)
+            fw.reset()
+            planner = Expert(fw)
+            late, ended, ok = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+            while not ended.all():
+                late |= fw.agent_state()[:, 0] >= -d
+                a = np.stack([np.ones(n), tracking_steer(fw)], axis=1)
+                if late.any():
+                    a[late] = planner.act()[late]
+                fw.step(a)
+                over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
+                ok[over] = fw.success()[over]
+                ended |= over
+            success.append(ok)
+        out[d] = float(np.concatenate(success).mean())
+    return out
+
+
 def fit_probe(x0, x1, v0, v1, seed: int = 0) -> dict:
     """Held-out accuracy of a 2 x 64 tanh MLP telling ``x0`` from ``x1`` on speed-matched, balanced
     samples (70/30 split), and of a speed threshold alone; NaN when the speeds do not overlap."""
@@ -141,8 +181,8 @@ def probe(args, cfg) -> int:
         raise SystemExit(f"racecav train probe: --sources: expected two sources, got {sources}")
     distances = _floats(args.distances, "--distances")
     strides = [int(s) for s in _floats(args.strides, "--strides")]
-    if any(s < 0 for s in strides) or any(d <= 0 for d in distances) or args.n < 1:
-        raise SystemExit("racecav train probe: --strides must be >= 0, --distances > 0 and --n >= 1")
+    if any(s < 0 for s in strides) or any(d <= 0 for d in distances) or args.n < 1 or args.late_n < 0:
+        raise SystemExit("racecav train probe: --strides must be >= 0, --distances > 0, --n >= 1 and --late-n >= 0")
     policy = load_policy(args.policy)
     data = [collect(policy, src, args.family, args.n, distances, strides, args.seed + 7919 * k)
             for k, src in enumerate(sources)]
@@ -151,6 +191,8 @@ def probe(args, cfg) -> int:
         dat["references"] = {name: float(collect(drv, src, args.family, args.n, distances[:1], [0],
                                                  args.seed + 7919 * k)["success"].mean())
                              for name, drv in reference_drivers().items()}
+        dat["late"] = late_decision(src, args.family, args.late_n, [float("inf")] + distances,
+                                    args.seed + 7919 * k) if args.late_n else {}
     rows = [{"distance_m": d, "stride": s, **fit_probe(data[0]["views"][(d, s)], data[1]["views"][(d, s)],
                                                       data[0]["speed"][d], data[1]["speed"][d], seed=args.seed)}
             for d in distances for s in strides]
@@ -173,7 +215,7 @@ def _markdown(args, sources, data, distances, rows) -> str:
     import numpy as np
 
     L = [f"`racecav train probe --policy {args.policy} --sources {args.sources} --family '{args.family}' --n {args.n} "
-         f"--distances {args.distances} --strides {args.strides} --seed {args.seed}`", "",
+         f"--distances {args.distances} --strides {args.strides} --late-n {args.late_n} --seed {args.seed}`", "",
          "| source | episodes | success | " + " | ".join(f"{r}, no evasion" for r in data[0]["references"]) + " | "
          + " | ".join(f"policy's yaw at {d:g} m (deg)" for d in distances) + " |",
          "|---|---:|---:|" + "---:|" * (len(data[0]["references"]) + len(distances))]
@@ -181,6 +223,13 @@ def _markdown(args, sources, data, distances, rows) -> str:
         L.append(f"| {src} | {len(dat['success'])} | {100 * dat['success'].mean():.0f} % | "
                  + " | ".join(f"{100 * v:.0f} %" for v in dat["references"].values()) + " | "
                  + " | ".join(f"{np.degrees(np.nanmean(dat['yaw'][d])):.1f}" for d in distances) + " |")
+    if data[0]["late"]:
+        L += ["", f"The privileged planner, held straight at full throttle until its ego is within each distance of the "
+              f"conflict point and free from there ({args.late_n} worlds per cell): success", "",
+              "| source | " + " | ".join("from the start" if d == float("inf") else f"straight until {d:g} m"
+                                       for d in data[0]["late"]) + " |", "|---|" + "---:|" * len(data[0]["late"])]
+        for src, dat in zip(sources, data):
+            L.append(f"| {src} | " + " | ".join(f"{100 * v:.0f} %" for v in dat["late"].values()) + " |")
     L += ["", "| ego to conflict point (m) | probe's view | speed band (m/s) | per class | speed alone | probe train | "
           "probe held-out |", "|---:|---|---|---:|---:|---:|---:|"]
     for r in rows:
