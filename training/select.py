@@ -717,7 +717,8 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-stack3", "avoid-wide"), ("avoid-papertimed", "avoid-wide"), ("avoid-stride", "avoid-papertimed"),
             ("avoid-wide-stride", "avoid-wide"), ("avoid-dagger", "avoid-wide"),
             ("avoid-dagger-ppo", "avoid-wide"), ("avoid-bc", "avoid-wide"), ("avoid-papertimed-lowlr", "avoid-papertimed"),
-            ("avoid-stride2", "avoid-papertimed"), ("avoid-papertimed-brake", "avoid-papertimed"))
+            ("avoid-stride2", "avoid-papertimed"), ("avoid-papertimed-brake", "avoid-papertimed"),
+            ("avoid-lane", "avoid-papertimed"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
