@@ -10,8 +10,7 @@ free, so the cheapest way to survive both timings is to keep the lane and evade 
 
 "Free" is privileged: the planner's look-ahead (training/expert.Expert, plain tracking at full
 throttle only) steps an exact copy of the world, synchronised actors included. The term exists
-in scenario episodes only (the traffic worlds' policy keeps the paper's reward); the policy
-never sees it, so nothing changes on the car.
+in scenario episodes only (traffic episodes get no term); the policy never sees it, so nothing changes on the car.
 
 Measured (row 19 of the ablation, docs/training.md): from the shipped avoid, it moves the turn
 later but does not teach the late evasion within 11 M samples, and the look-ahead cuts the

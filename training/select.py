@@ -984,8 +984,9 @@ def _ablation_markdown() -> str:
           "2 m before the cross-left conflicts is 14 deg (row 7: 18) and its success there falls from 82 "
           "to 71 %, while the paper-timed cross-left stays at 69 % (row 7: 71; fast world, 2048 worlds per "
           "suite, the probe's collection run on that checkpoint, a one-off). Scores 0.84-0.89 over 11 "
-          "checkpoints, falling after 5 M (best 0.89 at 4 M: conflict-timed 100 / 86 / 95 %, paper-timed "
-          "99 / 94 / 61 %, suite 89 % on the train split); the paper-timed left-to-right at 40-67 % and the "
+          "checkpoints, falling after 5 M (0.89 at 4 M and at 5 M, the table's row: conflict-timed 97 / 91 / "
+          "87 %, paper-timed 100 / 94 / 60 %, suite 90 % on the train split); the paper-timed left-to-right "
+          "at 40-67 % and the "
           "conflict-timed head-on at 71-91 %. Below row 7, rejected.", ""]
     probe_md = COMMITTED / "probe-cross-left.md"
     if probe_md.is_file():
