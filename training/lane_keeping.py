@@ -12,9 +12,9 @@ free, so the cheapest way to survive both timings is to keep the lane and evade 
 throttle only) steps an exact copy of the world, synchronised actors included. The term exists
 in scenario episodes only (traffic episodes get no term); the policy never sees it, so nothing changes on the car.
 
-Measured (row 19 of the ablation, docs/training.md): from the shipped avoid, it moves the turn
-later but does not teach the late evasion within 11 M samples, and the look-ahead cuts the
-training throughput by about four. The shipped avoid does not use it.
+Measured (row 19 of the ablation, docs/training.md): from the shipped avoid it does not teach
+the late evasion within 11 M samples (its checkpoints score below the shipped one), and the
+look-ahead cuts the training throughput by about four. The shipped avoid does not use it.
 """
 
 from __future__ import annotations
@@ -39,8 +39,6 @@ class LaneKeeping:
         self.weight = weight
         self.checks = [(sl, Expert(w, horizon_s, track_only=True)) for w, sl in zip(worlds, slices)
                        if w.actors is not None]
-        self.free_steps = 0
-        self.steps = 0
 
     def penalty(self, actions: np.ndarray) -> np.ndarray:
         """(N,) the term (<= 0) for ``actions`` (N, 2) taken from the worlds' current state."""
@@ -49,6 +47,4 @@ class LaneKeeping:
             free = e.scores()[:, 0] > self.CONTACT
             dev = np.abs(np.clip(actions[sl, 1], -1.0, 1.0) - e.first_track)
             out[sl] = np.where(free, -self.weight * dev, 0.0)
-            self.free_steps += int(free.sum())
-            self.steps += len(free)
         return out
