@@ -409,6 +409,10 @@ class TrainConfig(Section):
     rest. Every step is labelled with the planner's action either way."""
     expert_horizon_s: float = Field(2.5, gt=0)
     """dagger, and overtake with bc_coef: the planner's look-ahead (s)."""
+    expert_commit_s: float | None = Field(None, gt=0)
+    """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
+    touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
+    scores better; training/expert.Expert)."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)

@@ -174,3 +174,34 @@ def test_planner_tracks_the_road_in_either_direction(heading):
         fw.step(ex.act())
     assert not fw.contact().any()
     assert np.all(fw.progress() > 15.0), fw.progress()
+
+
+def test_committed_planner_tracks_until_a_contact_is_near_and_still_passes():
+    """``Expert(commit_s=...)`` (``--expert-commit``): on the conflict-timed left-to-right it labels
+    plain tracking until tracking would touch the crossing car within commit_s, a manoeuvre from
+    there, and passes; on the paper's left-to-right, where a straight fast car passes, it never
+    manoeuvres."""
+    for name, conflict in (("conflict-left-to-right", True), ("left-to-right", False)):
+        fw = FastWorld(n_envs=4, scenarios=[load_scenario(name)], seed=4)
+        fw.reset()
+        ex, probe = Expert(fw, commit_s=1.0), Expert(fw, horizon_s=2.5, track_only=True)
+        first_manoeuvre, ended, ok = np.full(4, -1), np.zeros(4, bool), np.zeros(4, bool)
+        tracking_hit = np.full(4, np.inf)  # tracking's contact step, seen from the first manoeuvre
+        step = 0
+        while not ended.all():
+            track = probe.scores()[:, 0]
+            a = ex.act()
+            new = (ex.last_best != 0) & (first_manoeuvre < 0) & ~ended
+            first_manoeuvre[new] = step
+            tracking_hit[new] = track[new] - (-1000.0)
+            fw.step(a)
+            over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
+            ok[over] = fw.success()[over]
+            ended |= over
+            step += 1
+        assert ok.all(), (name, ok)
+        if conflict:
+            assert (first_manoeuvre > 0).all(), first_manoeuvre  # it tracked first ...
+            assert (tracking_hit < 10).all(), tracking_hit  # ... until tracking hits within 1.0 s
+        else:
+            assert (first_manoeuvre < 0).all(), first_manoeuvre

@@ -91,7 +91,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    experts = [Expert(w, tc.expert_horizon_s) for w in fast.worlds]
+    experts = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds]
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
     scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)

@@ -81,9 +81,13 @@ class Expert:
     :param envs: plan for these of its worlds only (default: all of them).
     :param track_only: the first candidate only (plain tracking): ``scores`` then tells whether the
         ego's lane is free (training/lane_keeping.py).
+    :param commit_s: ``act`` chooses a manoeuvre only where plain tracking touches something within
+        this time (s), and tracks elsewhere: labels that evade only once a conflict is certain
+        (None: wherever a manoeuvre scores better).
     """
 
-    def __init__(self, world: FastWorld, horizon_s: float = 2.5, envs=None, track_only: bool = False):
+    def __init__(self, world: FastWorld, horizon_s: float = 2.5, envs=None, track_only: bool = False,
+                 commit_s: float | None = None):
         scen = world.actors is not None
         if not scen and world.n_obstacles and not isinstance(world.driver, CenterlineDriver):
             # the copies must move the traffic as the world does; a policy driver would need scans
@@ -94,6 +98,7 @@ class Expert:
         self.cands = candidates(world.car)[:1] if track_only else candidates(world.car)
         self.k = len(self.cands)
         self.h = int(round(horizon_s / world.control_period))
+        self.commit = None if commit_s is None else int(round(commit_s / world.control_period))
         self.plan = FastWorld(n_envs=self.n * self.k, world=world.world, car=world.car,
                               n_obstacles=world.n_obstacles, heading=world.heading,
                               driver="centerline", obstacle_lidar=False,
@@ -162,6 +167,9 @@ class Expert:
         keep = s[rows, self.last_best] >= top - TIE_M
         best = np.where(keep, self.last_best, best)
         best = np.where(s[:, 0] >= top - TIE_M, 0, best)
+        if self.commit is not None:  # tracking's contact step (the score encodes it), inf if none
+            hit = np.where(s[:, 0] < CONTACT_SCORE / 2, s[:, 0] - CONTACT_SCORE, np.inf)
+            best = np.where(hit >= self.commit, 0, best)
         self.last_best = best
         c = self.cands[best]
         first = np.where(c[:, 2] == 0, self.first_track, c[:, 1])

@@ -39,7 +39,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
     class _ImitationTerm(BaseCallback):
         def __init__(self):
             super().__init__()
-            self.experts = [Expert(w, tc.expert_horizon_s) for w in fast.worlds]
+            self.experts = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds]
             self.car = fast.world.car
             self.lo, self.hi = action_bounds(self.car)
             self.rng = np.random.default_rng(seed)

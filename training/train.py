@@ -44,9 +44,10 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
                "init_from", "init_std")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
-DAGGER_FLAGS = ("expert_share", "expert_horizon_s", "grad_steps", "dataset_max")
+DAGGER_FLAGS = ("expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
-IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert_horizon_s", "dataset_max")
+IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert_horizon_s", "expert_commit_s",
+                   "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
