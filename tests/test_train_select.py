@@ -73,3 +73,34 @@ def test_references_never_evade(tmp_path):
         assert float(r["conflict-left-to-right_success"]) == 0.0 and float(r["suite_success"]) == 0.0
         cells = [float(r[k]) for k in ("suite_success", "conflict_success", "intersection_success")]
         assert float(r["score"]) == pytest.approx(sum(cells) / 3)
+
+
+def test_targets_rank_by_targets_met_and_the_shipped_avoid_is_the_rules_pick(tmp_path):
+    """training/targets.py: a checkpoint that misses only the paper-timed left-to-right ranks above
+    one with a higher score that misses two targets; a rate of 89.6 % prints and counts as 90 %;
+    and the committed records' top pick is the checkpoint common/data/policies/avoid.json ships."""
+    import json
+
+    from racecav.common.policy import MODELS_DIR
+    from racecav.training import targets
+    from racecav.training.select import COMMITTED
+
+    cols = ["timesteps", "checkpoint", "score", "conflict-right-to-left_success", "conflict-head-to-head_success",
+            "conflict-left-to-right_success", "suite_success", "suite_episodes", "suite_cross-left", "suite_head-on",
+            "right-to-left_success", "head-to-head_success", "left-to-right_success"]
+    rows = {"a": [1e6, "step_a.zip", 0.92, 1.0, 0.84, 0.99, 0.91, 512, 0.67, 0.9, 1.0, 0.98, 0.76],
+            "b": [4e6, "step_b.zip", 0.91, 0.99, 0.896, 0.98, 0.92, 512, 0.75, 0.9, 1.0, 0.99, 0.51]}
+    for run, vals in rows.items():
+        (tmp_path / run).mkdir()
+        with (tmp_path / run / "eval.csv").open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerows([cols, vals])
+    top = targets.ranked(targets.evaluated(tmp_path))
+    assert [r["run"] for r in top] == ["b", "a"]
+    assert [sum(targets.met(r)) for r in top] == [7, 5]
+    table = targets.markdown(tmp_path)
+    assert "| b | 4.0 M | 7 / 8 | 91 | 99 | 90 |" in table and "*51*" in table and "*67*" in table
+
+    shipped = json.loads((MODELS_DIR / "avoid.json").read_text())
+    pick = targets.ranked(targets.evaluated(COMMITTED))[0]
+    assert (pick["run"], pick["checkpoint"]) == (shipped["run"], shipped["checkpoint"])

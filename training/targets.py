@@ -1,0 +1,98 @@
+"""The avoid policy's targets on the selection split: which evaluated checkpoint meets most of them.
+
+The targets are the avoid issue's (docs/results.md measures them on the test split, through the
+bus): each conflict-timed paper scenario >= 90 %; the conflict suite >= 85 % with no family
+below 70 %; the paper-timed scenarios not below the shipped reversed policy (100 % right-to-left
+and left-to-right) and head-to-head >= 90 %. Here they are read from every avoidance run's
+eval.csv (``racecav train select``: selection seeds, the suite's train split), so a checkpoint
+can be chosen for shipping without looking at the test split. The selection score (mean of suite,
+conflict-timed and paper-timed success) weighs a miss of the paper-timed left-to-right, which a
+straight car at full throttle wins, like a miss of a conflict; counting targets does not.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+TARGETS = (
+    ("conflict R-L", "conflict-right-to-left_success", 0.90),
+    ("conflict H-H", "conflict-head-to-head_success", 0.90),
+    ("conflict L-R", "conflict-left-to-right_success", 0.90),
+    ("suite", "suite_success", 0.85),
+    ("every family", "_family_min", 0.70),
+    ("paper R-L", "right-to-left_success", 1.00),
+    ("paper H-H", "head-to-head_success", 0.90),
+    ("paper L-R", "left-to-right_success", 1.00),
+)
+"""(name, eval.csv column, lowest passing rate); _family_min: the lowest suite_<family> column."""
+
+
+def evaluated(records: Path) -> list[dict]:
+    """Every checkpoint of every avoidance run in ``records`` (training/checkpoints/<run>/eval.csv)
+    with the suite and conflict-timed columns, as floats, with ``run`` and ``_family_min``."""
+    rows = []
+    for path in sorted(records.glob("*/eval.csv")):
+        with path.open() as f:
+            for r in csv.DictReader(f):
+                if r.get("score") in (None, ""):
+                    continue  # not an avoidance run's row
+                fams = [float(v) for k, v in r.items() if k.startswith("suite_") and k not in
+                        ("suite_success", "suite_episodes") and v not in (None, "")]
+                row = {k: (v if k == "checkpoint" else float(v)) for k, v in r.items() if v not in (None, "")}
+                rows.append(row | {"run": path.parent.name, "_family_min": min(fams) if fams else 0.0})
+    return rows
+
+
+def met(row: dict) -> list[bool]:
+    """Which TARGETS ``row`` meets (a rate rounded to whole percent, as the tables print it)."""
+    return [round(100 * row.get(col, 0.0)) >= round(100 * low) for _, col, low in TARGETS]
+
+
+def ranked(rows: list[dict]) -> list[dict]:
+    """Most targets met first, then the higher selection score."""
+    return sorted(rows, key=lambda r: (-sum(met(r)), -r["score"]))
+
+
+def markdown(records: Path, top: int = 10) -> str:
+    """The ``top`` checkpoints by targets met, with each target's cell (a miss in italics)."""
+    rows = ranked(evaluated(records))[:top]
+    if not rows:
+        return ""
+    head = "| run | checkpoint | targets met | score | " + " | ".join(n for n, _, _ in TARGETS) + " |\n"
+    head += "|---|---:|---:|---:|" + "---:|" * len(TARGETS) + "\n"
+    body = ""
+    for r in rows:
+        ok = met(r)
+        cells = [f"{round(100 * r.get(col, 0.0))}" if good else f"*{round(100 * r.get(col, 0.0))}*"
+                 for (_, col, _), good in zip(TARGETS, ok)]
+        body += (f"| {r['run']} | {r['timesteps'] / 1e6:.1f} M | {sum(ok)} / {len(TARGETS)} | {round(100 * r['score'])} | "
+                 + " | ".join(cells) + " |\n")
+    return head + body
+
+
+def section(records: Path, shipped: dict) -> str:
+    """docs/training.md's account of which checkpoint is shipped as avoid, and why (``shipped``:
+    avoid's metadata, common/data/policies/avoid.json)."""
+    table = markdown(records)
+    if not table:
+        return ""
+    conflicts_met = [r for r in evaluated(records) if all(met(r)[:3])]
+    best_lr = max(round(100 * r.get("left-to-right_success", 0.0)) for r in conflicts_met)
+    return ("\n## Which checkpoint is shipped as avoid\n\n"
+            "The ablation keeps a change when it raises the selection score. The score is the mean of three "
+            "rates (suite, conflict-timed, paper-timed), so it trades a conflict against the paper-timed "
+            "left-to-right, which a straight car at full throttle wins. The shipped avoid is chosen by the "
+            "issue's targets instead (training/targets.py): the evaluated checkpoint of any row that meets "
+            "the most of them on the selection split, then the higher score. Misses are in italics; the "
+            "suite's column is its train split with selection seeds, and \"every family\" is its lowest family. "
+            "The test split and the report seeds are not used.\n\n" + table + "\n"
+            f"Shipped: {shipped['run']} at {shipped['training_steps'] / 1e6:.1f} M samples. At 300 PyBullet "
+            "trials per scenario and 1536 suite episodes (selection seeds; `racecav train select --trials 300 "
+            "--suite-episodes 1536` on a run folder that holds only that checkpoint) it meets the same 7 of 8: "
+            "conflict-timed 99 / 93 / 98 %, suite 92 % (lowest family 80 %), paper-timed 100 / 99 / 53 %. "
+            "The checkpoint shipped before it (row 7 at 52.0 M, the best score), measured the same way, meets 6: "
+            "conflict-timed 100 / 82 / 98 %, suite 92 % (lowest family 75 %), paper-timed 100 / 97 / 77 %. "
+            "No evaluated checkpoint that meets the three conflict-timed targets reaches the paper-timed "
+            f"left-to-right one (the best of them: {best_lr} %): a straight car at full throttle passes it, "
+            "and these policies turn into the crossing road (the ablation's rows 8-19).\n")
