@@ -570,12 +570,15 @@ def _plot_curves() -> dict[str, dict]:
     stats = {}
     if not runs:
         return stats
-    fig, ax = plt.subplots(1, 2, figsize=(12, 4))
-    for name, r in runs.items():
+    fig, ax = plt.subplots(1, 2, figsize=(13, 7))
+    colors = plt.get_cmap("tab20").colors
+    for k, (name, r) in enumerate(runs.items()):
         rows = [x for x in r["rows"] if x.get("ep_rew_mean") not in ("", None)]
         x = [int(float(x["timesteps"])) / 1e6 for x in rows]
-        ax[0].plot(x, [float(x_["ep_rew_mean"]) for x_ in rows], label=name)
-        ax[1].plot(x, [float(x_["ep_len_mean"]) * 0.1 for x_ in rows], label=name)
+        # 20 colours x 2 line styles: 30-odd runs stay distinguishable
+        style = {"color": colors[k % len(colors)], "linestyle": "-" if k < len(colors) else "--", "lw": 1}
+        ax[0].plot(x, [float(x_["ep_rew_mean"]) for x_ in rows], label=name, **style)
+        ax[1].plot(x, [float(x_["ep_len_mean"]) * 0.1 for x_ in rows], label=name, **style)
         sps = [float(x_["samples_per_s"]) for x_ in r["rows"][1:] if x_.get("samples_per_s")]
         last = r["rows"][-1] if r["rows"] else {}
         stats[name] = {"samples": int(float(last.get("timesteps", 0))), "wall_s": float(last.get("wall_s") or 0),
@@ -584,9 +587,10 @@ def _plot_curves() -> dict[str, dict]:
     ax[0].set(xlabel="samples (M)", ylabel="mean episode return (last 100)", title="learning curves")
     ax[1].set(xlabel="samples (M)", ylabel="mean episode length (s)", title="episode length (time limit 60 s)")
     for a in ax:
-        a.legend()
         a.grid(alpha=0.3)
-    fig.tight_layout()
+    # one legend for both panels, below them: inside a panel it covers the curves
+    fig.legend(*ax[0].get_legend_handles_labels(), loc="lower center", ncol=5, fontsize=8)
+    fig.tight_layout(rect=(0, 0.2, 1, 1))
     img = REPO / "docs" / "img" / "training_curves.png"
     img.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(img, dpi=100)
@@ -769,7 +773,7 @@ def _ablation_markdown() -> str:
          "--init-from common/data/policies/reversed.zip --init-std 0.4` plus the changes of the rows above and "
          "its own (the change column, relative to the run it builds on; rows 4-5 start from row 3's shipped "
          "checkpoint and row 6 from row 4's, row 7 from row 6's, with `--init-std 0.3`: the avoid policy "
-         "shipped then; rows 8-13 and 15-20 from row 7's best checkpoint (the avoid shipped until row 16's 4 M checkpoint replaced it, below), keeping its action std; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
+         "shipped then; rows 8-13 and 15-20 from row 7's best checkpoint (the shipped avoid), keeping its action std; row 7's first layer is mapped onto the wider view, training/train.map_inputs); its "
          "checkpoints are scored by `racecav train select --trials 100` on the selection split only: the "
          "suite's train split with selection seeds in the fast world (suite columns, "
          f"{rows[0][2].get('suite_episodes')} episodes) and, in PyBullet in-process with selection seeds "
@@ -845,13 +849,13 @@ def _ablation_markdown() -> str:
           "--steps 60e6`), and its 52 M checkpoint scores 0.92 (suite 91, conflict-timed 100 / 84 / 99, "
           "paper-timed 100 / 98 / 76), the first above row 6, while its neighbours score 0.80-0.89: the "
           "row is kept by the rule, but that one checkpoint is the best of 26 evaluated and the paper-timed "
-          "left-to-right stays its weak cell. Shipped as avoid until row 16's 4 M checkpoint replaced it (\"Which "
-          "checkpoint is shipped as avoid\" below). "
+          "left-to-right stays its weak cell. Shipped as avoid (its cells through the services on the test "
+          "seeds and split are in docs/results.md; they are within 0-8 points of the selection split). "
           "Row 8 (avoid-lowlr) continues from row 7's 52 M checkpoint with a third of its learning rate "
           "(5e-5) and its action std as trained, to hold that point while it improves. It moves along the "
           "same trade-off instead: from 11 M samples on the conflict-timed head-on recovers (79-94 %, "
           "against 84 at the start) and the suite's train split holds at 87-94 %, but the paper-timed "
-          "left-to-right falls to 19-52 % (65 % after 3 M). Row 7's paths (the avoid paths figure, while it was shipped) "
+          "left-to-right falls to 19-52 % (65 % after 3 M). The shipped policy's paths (the avoid paths figure above) "
           "show the mechanism: in most trials it turns left into the crossing road. Behind a car that "
           "arrives with the ego (the conflict-timed case) that road is free; the paper's left-to-right "
           "car, which a straight ego would have passed, is still in it. Its best score "
@@ -954,8 +958,8 @@ def _ablation_markdown() -> str:
           "rose from 67 to 83 % by 24 M and fell back to 72 %, curriculum.csv): scores 0.85-0.91, the best "
           "(0.909 at 4 M and at 20 M) below row 7's 0.92. Rejected by the score, but its 4 M checkpoint "
           "(committed in training/checkpoints/avoid-papertimed-lowlr/checkpoints/) meets more of the issue's "
-          "targets than any other and is the shipped avoid (below). In 8 traced paper-timed left-to-right "
-          "trials (PyBullet, a one-off script) row 7's checkpoint failed 5 times, each by turning left into the "
+          "targets than any other: the targets' pick for avoid (below). In 8 traced paper-timed left-to-right "
+          "trials (PyBullet, a one-off script) the shipped policy failed 5 times, each by turning left into the "
           "crossing road to pass behind a car that a straight ego would have passed ahead of: the two timings "
           "look alike in its view until it has turned. "
           "Row 17 (avoid-stride2) is row 11 with half its baseline: two scans 0.2 s apart (`--obs-stride 2`) "
@@ -996,7 +1000,7 @@ def _ablation_markdown() -> str:
           "cross-left steps and in none of the paper-timed ones. Its labels are manoeuvres in 10-13 % of "
           "the steps (imitation.csv), but the policy still collapses first: the training return falls from "
           "770 to 420 within 50 k samples, and after 6.6 M samples (22 min, a median 5.5 k samples/s) the "
-          "conflict families it evaded are at 19-49 % in training (staggered 19 %, cross-left 29 %; "
+          "crossing families are at 19-49 % in training (staggered 19, cross-left 29, cross-right 49 %; "
           "curriculum.csv). Its 6.6 M checkpoint drives straight through the crossings, as rows 13 and 15 "
           "did: paper-timed 100 / 88 / 100 %, conflict-timed 13 / 94 / 5 %, suite 57 %, score 0.64. "
           "Stopped, rejected; resumable (`racecav train overtake --resume --run-dir runs/avoid-bc-commit "
@@ -1006,8 +1010,7 @@ def _ablation_markdown() -> str:
         L += ["### When the view tells the two timings apart", "",
               "Rows 10-12 and 16-18 trade the paper-timed crossing from the left against the conflict-timed one. "
               "`racecav train probe` (training/probe.py) measures when the policy's view can tell them apart: "
-              "row 7's checkpoint (the avoid shipped then; `--policy` names the policy) drives the suites' "
-              "cross-left train files of both timings in the fast world; "
+              "the shipped avoid drives the suites' cross-left train files of both timings in the fast world; "
               "at the first step its ego is within 3, 2.5, 2 and 1.5 m of the conflict point, a fresh MLP of "
               "the policy's size (2 x 64 tanh) is fitted to tell the two timings apart from the scan there "
               "(alone, or with a scan 1-8 control periods older), on episodes matched on the ego's speed and "
