@@ -991,7 +991,7 @@ def _ablation_markdown() -> str:
           "87 %, paper-timed 100 / 94 / 60 %, suite 90 % on the train split); the paper-timed left-to-right "
           "at 40-67 % and the "
           "conflict-timed head-on at 71-91 %. Below row 7, rejected. "
-          "Row 20 (avoid-bc-commit) is row 15 with the planner's labels gated (`--expert-commit 1.0`, "
+          "Row 20 (avoid-bc-commit) is row 15 with the planner's labels gated (`--expert-commit-s 1.0`, "
           "training/expert.Expert's commit_s): the planner labels a manoeuvre only where tracking its road "
           "would touch something within 1.0 s, and plain tracking everywhere else. Why: row 15's labels chose "
           "a manoeuvre in 40 % of the steps for small gains the view does not determine, while the planner "

@@ -92,7 +92,7 @@ def section(records: Path, shipped: dict) -> str:
                   "(`racecav train ship --checkpoint STEP --name avoid` on a copy of its run folder, "
                   "training/checkpoints/RUN/checkpoints/ holds it) changes every avoid cell of docs/results.md "
                   "and the README, so it waits for a full `racecav eval --table` run with it (about 36 k trials "
-                  "through the bus: over two hours of this machine's two cores).")
+                  "through the bus: about four hours of this machine's two cores).")
     return ("\n## Which checkpoint the targets pick for avoid\n\n"
             "The ablation keeps a change when it raises the selection score. The score is the mean of three "
             "rates (suite, conflict-timed, paper-timed), so it trades a conflict against the paper-timed "
