@@ -37,9 +37,10 @@ def evaluated(records: Path) -> list[dict]:
             for r in csv.DictReader(f):
                 if r.get("score") in (None, ""):
                     continue  # not an avoidance run's row
+                # a family without episodes (nan) has no rate to miss
                 fams = [float(v) for k, v in r.items() if k.startswith("suite_") and k not in
-                        ("suite_success", "suite_episodes") and v not in (None, "")]
-                row = {k: (v if k == "checkpoint" else float(v)) for k, v in r.items() if v not in (None, "")}
+                        ("suite_success", "suite_episodes") and v not in (None, "", "nan")]
+                row = {k: (v if k == "checkpoint" else float(v)) for k, v in r.items() if v not in (None, "", "nan")}
                 rows.append(row | {"run": path.parent.name, "_family_min": min(fams) if fams else 0.0})
     return rows
 
@@ -82,7 +83,7 @@ def section(records: Path, shipped: dict) -> str:
     rows = evaluated(records)
     pick = ranked(rows)[0]
     conflicts_met = [r for r in rows if all(met(r)[:3])]
-    best_lr = max(round(100 * r.get("left-to-right_success", 0.0)) for r in conflicts_met)
+    best_lr = max((round(100 * r.get("left-to-right_success", 0.0)) for r in conflicts_met), default=0)
     where = f"{pick['run']} at {pick['timesteps'] / 1e6:.1f} M samples"
     if (pick["run"], pick["checkpoint"]) == (shipped["run"], shipped["checkpoint"]):
         status = f"The targets' pick, {where}, is the shipped avoid."
