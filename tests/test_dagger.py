@@ -177,7 +177,7 @@ def test_planner_tracks_the_road_in_either_direction(heading):
 
 
 def test_committed_planner_tracks_until_a_contact_is_near_and_still_passes():
-    """``Expert(commit_s=...)`` (``--expert-commit``): on the conflict-timed left-to-right it labels
+    """``Expert(commit_s=...)`` (``--expert-commit-s``): on the conflict-timed left-to-right it labels
     plain tracking until tracking would touch the crossing car within commit_s, a manoeuvre from
     there, and passes; on the paper's left-to-right, where a straight fast car passes, it never
     manoeuvres."""

@@ -75,9 +75,9 @@ def test_references_never_evade(tmp_path):
         assert float(r["score"]) == pytest.approx(sum(cells) / 3)
 
 
-def test_targets_rank_by_targets_met_and_the_shipped_avoid_is_the_rules_pick(tmp_path):
+def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
     """training/targets.py: a checkpoint that misses only the paper-timed left-to-right ranks above
-    one with a higher score that misses two targets; a rate of 89.6 % prints and counts as 90 %;
+    one with a higher score that misses three; a rate of 89.6 % prints and counts as 90 %;
     the committed records' pick is a committed checkpoint, and the page says whether avoid is it."""
     import json
 
