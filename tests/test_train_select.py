@@ -98,8 +98,10 @@ def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
     top = targets.ranked(targets.evaluated(tmp_path))
     assert [r["run"] for r in top] == ["b", "a"]
     assert [sum(targets.met(r)) for r in top] == [7, 5]
-    table = targets.markdown(tmp_path)
+    table = targets.markdown(targets.evaluated(tmp_path), targets.references(COMMITTED))
     assert "| b | 4.0 M | 7 / 8 | 91 | 99 | 90 |" in table and "*51*" in table and "*67*" in table
+    # the references close the table: full throttle passes only the paper-timed side scenarios
+    assert "| *straight, full throttle* | reference | 2 / 8 |" in table, table
 
     # the committed records' pick can be shipped from committed files, and the page says whether it is
     pick = targets.ranked(targets.evaluated(COMMITTED))[0]

@@ -28,21 +28,35 @@ TARGETS = (
 """(name, eval.csv column, lowest passing rate); _family_min: the lowest suite_<family> column."""
 
 
+def _row(r: dict, **extra) -> dict:
+    """One eval.csv / references.csv row as floats (text columns kept), with ``_family_min``."""
+    text = ("checkpoint", "reference")
+    # a family without episodes (nan) has no rate to miss
+    fams = [float(v) for k, v in r.items() if k.startswith("suite_") and k not in
+            ("suite_success", "suite_episodes") and v not in (None, "", "nan")]
+    row = {k: (v if k in text else float(v)) for k, v in r.items() if v not in (None, "", "nan")}
+    return row | extra | {"_family_min": min(fams) if fams else 0.0}
+
+
 def evaluated(records: Path) -> list[dict]:
     """Every checkpoint of every avoidance run in ``records`` (training/checkpoints/<run>/eval.csv)
     with the suite and conflict-timed columns, as floats, with ``run`` and ``_family_min``."""
     rows = []
     for path in sorted(records.glob("*/eval.csv")):
         with path.open() as f:
-            for r in csv.DictReader(f):
-                if r.get("score") in (None, ""):
-                    continue  # not an avoidance run's row
-                # a family without episodes (nan) has no rate to miss
-                fams = [float(v) for k, v in r.items() if k.startswith("suite_") and k not in
-                        ("suite_success", "suite_episodes") and v not in (None, "", "nan")]
-                row = {k: (v if k == "checkpoint" else float(v)) for k, v in r.items() if v not in (None, "", "nan")}
-                rows.append(row | {"run": path.parent.name, "_family_min": min(fams) if fams else 0.0})
+            rows += [_row(r, run=path.parent.name) for r in csv.DictReader(f)
+                     if r.get("score") not in (None, "")]  # else not an avoidance run's row
     return rows
+
+
+def references(records: Path) -> list[dict]:
+    """The non-evading references on the same cells and seeds (``racecav train references``,
+    records/references.csv), as rows like ``evaluated``'s; none if it is missing."""
+    path = records / "references.csv"
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [_row(r) for r in csv.DictReader(f)]
 
 
 def met(row: dict) -> list[bool]:
@@ -55,32 +69,33 @@ def ranked(rows: list[dict]) -> list[dict]:
     return sorted(rows, key=lambda r: (-sum(met(r)), -r["score"]))
 
 
-def markdown(records: Path, top: int = 10, also: tuple[str, str] | None = None) -> str:
-    """The ``top`` checkpoints by targets met, with each target's cell (a miss in italics), then the
-    checkpoint ``also`` = (run, checkpoint file) if it is not among them."""
-    every = ranked(evaluated(records))
-    rows = every[:top] + [r for r in every[top:] if also and (r["run"], r["checkpoint"]) == also]
-    if not rows:
+def markdown(rows: list[dict], refs: list[dict] = (), top: int = 10, also: tuple[str, str] | None = None) -> str:
+    """The ``top`` of ``rows`` by targets met, with each target's cell (a miss in italics), then the
+    checkpoint ``also`` = (run, checkpoint file) if it is not among them, then the references."""
+    every = ranked(rows)
+    shown = every[:top] + [r for r in every[top:] if also and (r["run"], r["checkpoint"]) == also]
+    if not shown:
         return ""
     head = "| run | checkpoint | targets met | score | " + " | ".join(n for n, _, _ in TARGETS) + " |\n"
     head += "|---|---:|---:|---:|" + "---:|" * len(TARGETS) + "\n"
     body = ""
-    for r in rows:
+    for r in shown + list(refs):
         ok = met(r)
         cells = [f"{round(100 * r.get(col, 0.0))}" if good else f"*{round(100 * r.get(col, 0.0))}*"
                  for (_, col, _), good in zip(TARGETS, ok)]
-        body += (f"| {r['run']} | {r['timesteps'] / 1e6:.1f} M | {sum(ok)} / {len(TARGETS)} | {round(100 * r['score'])} | "
-                 + " | ".join(cells) + " |\n")
+        name, ck = ((r["run"], f"{r['timesteps'] / 1e6:.1f} M") if "run" in r
+                    else (f"*{r['reference']}*", "reference"))
+        body += f"| {name} | {ck} | {sum(ok)} / {len(TARGETS)} | {round(100 * r['score'])} | " + " | ".join(cells) + " |\n"
     return head + body
 
 
 def section(records: Path, shipped: dict) -> str:
     """docs/training.md's account of which checkpoint the targets pick for avoid (``shipped``: the
     shipped avoid's metadata, common/data/policies/avoid.json)."""
-    table = markdown(records, also=(shipped["run"], shipped["checkpoint"]))
+    rows = evaluated(records)
+    table = markdown(rows, references(records), also=(shipped["run"], shipped["checkpoint"]))
     if not table:
         return ""
-    rows = evaluated(records)
     pick = ranked(rows)[0]
     conflicts_met = [r for r in rows if all(met(r)[:3])]
     best_lr = max((round(100 * r.get("left-to-right_success", 0.0)) for r in conflicts_met), default=0)
@@ -99,8 +114,9 @@ def section(records: Path, shipped: dict) -> str:
             "rates (suite, conflict-timed, paper-timed), so it trades a conflict against the paper-timed "
             "left-to-right, which a straight car at full throttle wins. The issue's targets "
             "(training/targets.py) do not: the checkpoint to ship is the evaluated checkpoint of any row that "
-            "meets the most of them on the selection split, then the higher score. The table's last row is the "
-            "shipped avoid when it is not among the first ten. Misses are in italics; the "
+            "meets the most of them on the selection split, then the higher score. After the first ten come the "
+            "shipped avoid when it is not among them and the two non-evading references on the same cells and "
+            "seeds (`racecav train references`). Misses are in italics; the "
             "suite's column is its train split with selection seeds, and \"every family\" is its lowest family. "
             "The test split and the report seeds are not used.\n\n" + table + "\n" + status + " "
             "At 300 PyBullet trials per scenario and 1536 suite episodes (selection seeds; `racecav train select "
