@@ -18,7 +18,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
 class Section(BaseModel):
@@ -328,6 +328,29 @@ class EnvConfig(Section):
     False: every train file equally often. Families: each suite's own (its manifest), a
     plain scenario file is its own family (common/scenario.scenario_sources). The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
     gym env draws uniformly."""
+    curriculum_boost: dict[str, float] = {}
+    """With curriculum: family -> factor on its draw weight (e.g. ``paper-timed/cross-left=3``;
+    on the CLI "FAMILY=W[,FAMILY=W]"). Moves the policy's trade-off between families whose
+    situations look alike until late (a crossing car it passes ahead of vs one it must go
+    behind) towards the boosted one. {}: the failure rates alone."""
+    @field_validator("curriculum_boost", mode="before")
+    @classmethod
+    def _parse_boost(cls, v):
+        if isinstance(v, str):  # the CLI's "FAMILY=W,FAMILY=W"
+            out = {}
+            for part in filter(None, (x.strip() for x in v.split(","))):
+                name, eq, w = part.partition("=")
+                try:
+                    out[name.strip()] = float(w)
+                except ValueError:
+                    raise ValueError(f"curriculum_boost: {part!r} is not FAMILY=FACTOR") from None
+                if not eq or not name.strip():
+                    raise ValueError(f"curriculum_boost: {part!r} is not FAMILY=FACTOR")
+            v = out
+        if isinstance(v, dict) and any(not w > 0 for w in v.values()):
+            raise ValueError(f"curriculum_boost: factors must be > 0 (got {v})")
+        return v
+
     lidar: Literal["paper", "wide"] = "paper"
     """The scan the policy sees (common/lidar.VIEWS): paper = 170 rays over the frontal 90 deg;
     wide = 169 rays over +-89.7 deg (every second ray of the paper's spacing). The policy's

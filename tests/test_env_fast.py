@@ -434,3 +434,36 @@ def test_curriculum_flag_is_recorded():
     assert config_from_args(args).env.curriculum is True
     args = parser.parse_args(["overtake", "--scenarios", "conflicts"])
     assert config_from_args(args).env.curriculum is False
+
+
+def test_curriculum_boost_weights_a_family_and_names_a_wrong_one(tmp_path):
+    """--curriculum-boost FAMILY=W multiplies that family's draw weight (before any episode both
+    weigh 0.5); it is recorded in the run config, and a family the scenarios lack is an error
+    listing the ones they have."""
+    import argparse
+    import shutil
+
+    import pytest
+
+    from racecav.common.config import EnvConfig
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.train import add_arguments, config_from_args
+
+    for name in ("right-to-left", "conflict-right-to-left"):
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
+    base = dict(n_envs=8, scenarios=str(tmp_path), scenario_share=1.0, curriculum=True, n_obstacles=0)
+    env = FastVecEnv(config=EnvConfig(**base, curriculum_boost="right-to-left=3"), seed=0)
+    (world,) = env.curriculum.worlds
+    p = dict(zip(env.curriculum.names, world.draw_p))
+    assert p["right-to-left"] == pytest.approx(3 * p["conflict-right-to-left"])
+    env.close()
+    with pytest.raises(ValueError, match="no family cross-left.*families: conflict-right-to-left, right-to-left"):
+        FastVecEnv(config=EnvConfig(**base, curriculum_boost="cross-left=2"), seed=0)
+    for bad in ("right-to-left", "right-to-left=0", "=2"):
+        with pytest.raises(ValueError, match="curriculum_boost"):
+            EnvConfig(**base, curriculum_boost=bad)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--curriculum",
+                              "--curriculum-boost", "conflicts/cross-left=2, conflicts/head-on=1.5"])
+    assert config_from_args(args).env.curriculum_boost == {"conflicts/cross-left": 2.0, "conflicts/head-on": 1.5}

@@ -110,3 +110,23 @@ def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
     text = targets.section(COMMITTED, shipped)
     is_shipped = (pick["run"], pick["checkpoint"]) == (shipped["run"], shipped["checkpoint"])
     assert ("samples, is the shipped avoid." in text) == is_shipped and ("is not shipped yet" in text) != is_shipped
+
+
+def test_checkpoint_policy_is_the_shipped_policy_exported_from_it(tmp_path):
+    """The shipped avoid was exported from row 16's 4 M checkpoint: read back from the run's .zip
+    with the run's config.json, it has the same view settings and the same actions. A checkpoint
+    outside a run folder is an error naming the missing record."""
+    import numpy as np
+
+    from racecav.common.policy import load_policy
+    from racecav.training.select import checkpoint_policy
+
+    ck = Path("training/checkpoints/avoid-papertimed-lowlr/checkpoints/step_004005888.zip")
+    pol, shipped = checkpoint_policy(ck), load_policy("avoid")
+    for k in ("lidar", "obs_stack", "obs_stride", "brake_below"):
+        assert pol.metadata.get(k) == shipped.metadata.get(k), k
+    obs = np.random.default_rng(0).uniform(0.2, 12.0, (64, shipped.obs_stack * 169)).astype(np.float32)
+    assert np.allclose(pol(obs), shipped(obs), atol=1e-5)
+    shutil.copy(ck, tmp_path / "step_1.zip")
+    with pytest.raises(FileNotFoundError, match="no run record"):
+        checkpoint_policy(tmp_path / "step_1.zip")

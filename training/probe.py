@@ -31,7 +31,7 @@ HIDDEN = 64
 def add_subcommands(sub) -> None:
     p = sub.add_parser("probe", help="how early a policy's view tells two scenario sources apart "
                        "(e.g. paper-timed vs conflict-timed crossings): a supervised probe per distance and scan stride")
-    p.add_argument("--policy", default="avoid", help="shipped policy name or .npz: it drives (its own view)")
+    p.add_argument("--policy", default="avoid", help="shipped policy name, .npz, or a run's checkpoint .zip (with the run's settings): it drives (its own view)")
     p.add_argument("--sources", default="paper-timed,conflicts",
                    help="two scenario sources, comma-separated: suite NAME (train split), folder or file")
     p.add_argument("--family", default="cross-left", help="only scenario files whose name starts with this ('' = all)")
@@ -173,7 +173,7 @@ def probe(args, cfg) -> int:
     import torch
 
     from racecav.common.policy import load_policy
-    from racecav.training.select import reference_drivers
+    from racecav.training.select import checkpoint_policy, reference_drivers
 
     torch.set_num_threads(1)
     sources = [s.strip() for s in args.sources.split(",") if s.strip()]
@@ -183,7 +183,7 @@ def probe(args, cfg) -> int:
     strides = [int(s) for s in _floats(args.strides, "--strides")]
     if any(s < 0 for s in strides) or any(d <= 0 for d in distances) or args.n < 1 or args.late_n < 0:
         raise SystemExit("racecav train probe: --strides must be >= 0, --distances > 0, --n >= 1 and --late-n >= 0")
-    policy = load_policy(args.policy)
+    policy = checkpoint_policy(Path(args.policy)) if args.policy.endswith(".zip") else load_policy(args.policy)
     data = [collect(policy, src, args.family, args.n, distances, strides, args.seed + 7919 * k)
             for k, src in enumerate(sources)]
     # the non-evading references on the same worlds and seeds, beside the policy's success

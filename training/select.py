@@ -105,6 +105,19 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: floa
                                 "lidar": lidar})
 
 
+def checkpoint_policy(zip_path: Path):
+    """NumpyPolicy of a run's checkpoint (``<run>/checkpoints/step_N.zip`` or ``<run>/latest.zip``)
+    with the env settings of the run's config.json (its view, stack, stride and brake)."""
+    zip_path = Path(zip_path)
+    if not zip_path.is_file():
+        raise FileNotFoundError(f"checkpoint {zip_path}: no such file")
+    run_dir = zip_path.parent.parent if zip_path.parent.name == "checkpoints" else zip_path.parent
+    if not (run_dir / "config.json").is_file():
+        raise FileNotFoundError(f"checkpoint {zip_path}: no run record {run_dir / 'config.json'} (its env settings)")
+    env = load_run_config(run_dir)[0].env
+    return policy_from_checkpoint(zip_path, env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
+
+
 def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
     """One episode in each of ``episodes`` fast worlds of the run's env (held-out seed)."""
     import numpy as np
@@ -753,7 +766,7 @@ def _ablation_markdown() -> str:
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
-                "curriculum", "lidar", "lane_keeping", "lane_keeping_horizon_s") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
+                "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
                                                                           "expert_commit_s")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]) or "-"

@@ -55,7 +55,7 @@ ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-o
              "contact_penalty": "--contact-penalty", "lane_keeping": "--lane-keeping",
              "lane_keeping_horizon_s": "--lane-keeping-horizon",
              "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
-             "lidar": "--lidar"}
+             "curriculum_boost": "--curriculum-boost", "lidar": "--lidar"}
 """EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",

@@ -31,7 +31,8 @@ class FamilyCurriculum:
     """Draw scenario files by family, each family weighted by its recent failure rate.
 
     A family that the policy passes is still drawn (weight ``FLOOR``), so it is not forgotten;
-    files of a family stay equally likely. Families are grouped across the batch's scenario
+    ``boost`` multiplies a family's weight (EnvConfig.curriculum_boost); files of a family stay
+    equally likely. Families are grouped across the batch's scenario
     worlds (a family may span world geometries); each world's draw is renormalised. The
     history is not checkpointed: a resumed run relearns it in its first episodes.
     """
@@ -40,9 +41,14 @@ class FamilyCurriculum:
     FLOOR = 0.1
     MIN_EPISODES = 20  # before this, a family counts as failing half the time
 
-    def __init__(self, worlds: list):
+    def __init__(self, worlds: list, boost: dict[str, float] | None = None):
         self.worlds = [w for w in worlds if w.actors is not None]
         self.names = sorted({f for w in self.worlds for f in w.scenario_families})
+        unknown = sorted(set(boost or {}) - set(self.names))
+        if unknown:
+            raise ValueError(f"curriculum_boost: no family {', '.join(unknown)} in the scenarios "
+                             f"(families: {', '.join(self.names)})")
+        self.boost = np.array([(boost or {}).get(f, 1.0) for f in self.names])
         ids = {f: i for i, f in enumerate(self.names)}
         self.fam_of = [np.array([ids[f] for f in w.scenario_families]) for w in self.worlds]
         self._files_of_fam = [np.bincount(fam, minlength=len(self.names))[fam] for fam in self.fam_of]
@@ -62,7 +68,7 @@ class FamilyCurriculum:
 
     def update(self) -> None:
         rate = np.array(list(self.success_rates().values()))
-        weight = np.maximum(1.0 - np.where(np.isnan(rate), 0.5, rate), self.FLOOR)
+        weight = np.maximum(1.0 - np.where(np.isnan(rate), 0.5, rate), self.FLOOR) * self.boost
         for w, fam, n_files in zip(self.worlds, self.fam_of, self._files_of_fam):
             p = weight[fam] / n_files
             w.draw_p = p / p.sum()
@@ -116,7 +122,7 @@ class FastVecEnv(VecEnv):
         self._actions = np.zeros((n, 2))
         # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
         self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
-        self.curriculum = FamilyCurriculum(self.worlds) if self.settings.curriculum and self.is_scenario.any() else None
+        self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost) if self.settings.curriculum and self.is_scenario.any() else None
         self.lane_keeping = None
         if self.settings.lane_keeping and self.is_scenario.any():
             from racecav.training.lane_keeping import LaneKeeping
