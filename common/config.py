@@ -333,6 +333,7 @@ class EnvConfig(Section):
     on the CLI "FAMILY=W[,FAMILY=W]"). Moves the policy's trade-off between families whose
     situations look alike until late (a crossing car it passes ahead of vs one it must go
     behind) towards the boosted one. {}: the failure rates alone."""
+
     @field_validator("curriculum_boost", mode="before")
     @classmethod
     def _parse_boost(cls, v):
@@ -350,6 +351,12 @@ class EnvConfig(Section):
         if isinstance(v, dict) and any(not w > 0 for w in v.values()):
             raise ValueError(f"curriculum_boost: factors must be > 0 (got {v})")
         return v
+
+    @model_validator(mode="after")
+    def _boost_needs_curriculum(self):
+        if self.curriculum_boost and not self.curriculum:
+            raise ValueError("curriculum_boost: weighs the curriculum's draw; set curriculum too")
+        return self
 
     lidar: Literal["paper", "wide"] = "paper"
     """The scan the policy sees (common/lidar.VIEWS): paper = 170 rays over the frontal 90 deg;

@@ -462,6 +462,8 @@ def test_curriculum_boost_weights_a_family_and_names_a_wrong_one(tmp_path):
     for bad in ("right-to-left", "right-to-left=0", "=2"):
         with pytest.raises(ValueError, match="curriculum_boost"):
             EnvConfig(**base, curriculum_boost=bad)
+    with pytest.raises(ValueError, match="set curriculum too"):
+        EnvConfig(**{**base, "curriculum": False}, curriculum_boost="right-to-left=3")
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--curriculum",
