@@ -33,7 +33,7 @@ def test_select_keeps_family_columns(tmp_path, monkeypatch):
     run = tmp_path / "avoid-tiny"
     assert main(["train", "overtake", "--steps", "256", "--run-dir", str(run), *TINY, "--world", "figure8",
                  "--heading", "reversed", "--n-obstacles", "0", "--scenarios", str(scen),
-                 "--scenario-share", "1.0"]) == 0
+                 "--scenario-share", "1.0", "--curriculum", "--curriculum-boost", "right-to-left=2"]) == 0
     sel = ["train", "select", "--run-dir", str(run), "--trials", "1", "--episodes", "2", "--suite-episodes", "8",
            "--last", "1"]
     assert main(sel) == 0
