@@ -1038,10 +1038,7 @@ def _ablation_markdown() -> str:
           "1536 suite episodes (`racecav train select --trials 300 --suite-episodes 1536` on a run folder that "
           "holds only it) conflict-timed 99 / 93 / 97 %, paper-timed 99 / 98 / 70 %, suite 90 % (lowest family "
           "73 %), score 0.917: 6 of 8, one point of the paper-timed right-to-left short of row 16's 7, "
-          "with 17 points more of the left-to-right than row 16's 53 %. Its failures are row 7's turn: in 40 traced "
-          "paper-timed left-to-right trials (selection seeds, a one-off script) its 13 M and 28.6 M checkpoints "
-          "each fail 8 times, every time ending 1.2-1.9 m to the left of its road, in the crossing road. "
-          "Rejected.", ""]
+          "with 17 points more of the left-to-right than row 16's 53 %. Rejected.", ""]
     probe_md = COMMITTED / "probe-cross-left.md"
     if probe_md.is_file():
         L += ["### When the view tells the two timings apart", "",
