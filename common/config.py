@@ -432,6 +432,9 @@ class TrainConfig(Section):
     """Start the weights (and the normalisation of a .vecnorm.pkl beside it) from this SB3 zip."""
     init_std: float | None = Field(None, gt=0)
     """With init_from: reset the action std to this (a converged policy explores too little)."""
+    mirror_symmetric: bool = False
+    """A mirror-symmetric actor: its action on the mirrored scans is its action mirrored (the
+    same 2 x 64 tanh MlpPolicy with tied weights; training/symmetric.py)."""
     env: EnvConfig = EnvConfig(n_envs=1)
     """The training env (heading, obstacles, traffic driver, world, scenarios, observation...)."""
     # dagger stage only (training/dagger.py)
@@ -444,6 +447,13 @@ class TrainConfig(Section):
     """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
     touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
     scores better; training/expert.Expert)."""
+    expert: Literal["planner", "mirror"] = "planner"
+    """dagger: the teacher. planner: the privileged planner (training/expert.py); mirror: the
+    ``init_from`` policy itself, its action on the mirrored scan in the ``mirror_families``
+    scenarios and its own action elsewhere (training/mirror.py)."""
+    mirror_families: str = "cross-left"
+    """dagger with expert mirror: the scenario families (comma-separated, without the suite)
+    whose steps are labelled with the mirrored action."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)

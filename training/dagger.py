@@ -17,6 +17,9 @@ step_<N>.zip + .vecnorm.pkl, latest.*; ``racecav train select`` and ``ship`` rea
 a PPO run. The observation normalisation is the ``--init-from`` policy's, frozen (the policy
 keeps the input scale it was trained on). The value head and action std are kept as loaded,
 so a PPO run can continue from a checkpoint (``racecav train overtake --init-from``).
+``--expert mirror`` replaces the planner by the ``--init-from`` policy's own action, mirrored in
+the ``--mirror-families`` scenarios once their car is near on the ego's left (training/mirror.py;
+"manoeuvres" then counts the mirrored labels).
 progress.csv's columns: the imitation loss, the share of steps on which the policy's steering
 is within 0.05 rad of the planner's, the success rate of the scenario episodes the policy drove
 and the share of its traffic episodes that ended in a contact, and the share of labels that are
@@ -68,6 +71,20 @@ def imitation_loss(pred, label, lo, hi, scale):
     return ((diff / scale) ** 2).mean()
 
 
+def mirror_teacher(tc, fast):
+    """The ``--expert mirror`` teacher: the frozen ``init_from`` policy (with its normalisation)
+    under the run's view settings, mirrored in the ``mirror_families`` scenarios."""
+    from racecav.training.mirror import MirrorTeacher
+    from racecav.training.select import policy_from_checkpoint
+
+    env = tc.env
+    policy = policy_from_checkpoint(Path(tc.init_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
+    if policy.obs_dim != fast.observation_space.shape[0]:
+        raise ValueError(f"--expert mirror: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
+                         f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
+    return MirrorTeacher(policy, fast, [f.strip() for f in tc.mirror_families.split(",") if f.strip()])
+
+
 class _Stop:
     requested = False
 
@@ -91,7 +108,10 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    experts = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds]
+    if tc.expert == "mirror":
+        experts, teacher = [], mirror_teacher(tc, fast)
+    else:
+        experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds], None
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
     scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
@@ -123,12 +143,20 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
             t_roll = time.monotonic()
             agree = succ = eps_s = contacts = eps_t = done_steps = 0
             for _ in range(tc.n_steps):
-                label = np.concatenate([e.act() for e in experts])
-                man = np.concatenate([e.last_best != 0 for e in experts])
+                if teacher is not None:
+                    label, man = teacher.labels(venv.get_original_obs())
+                    # as the car acts (a policy's steering saturates beyond the range): the
+                    # loss then leaves a prediction alone that lies beyond the same bound
+                    label = np.clip(label, lo, hi)
+                else:
+                    label = np.concatenate([e.act() for e in experts])
+                    man = np.concatenate([e.last_best != 0 for e in experts])
                 with torch.no_grad():
                     student = mean_action(policy, obs).numpy()
                 steer = np.clip(student[:, 1], lo[1], hi[1]) * fast.world.car.steer_gain
-                agree += int((np.abs(steer - label[:, 1] * fast.world.car.steer_gain) < STEER_TOL).sum())
+                # both as the car steers: a label beyond the steering range acts as the range's end
+                label_steer = np.clip(label[:, 1], lo[1], hi[1]) * fast.world.car.steer_gain
+                agree += int((np.abs(steer - label_steer) < STEER_TOL).sum())
                 k = np.arange(head, head + n) % cap
                 data_obs[k], data_act[k], data_man[k] = obs, label, man
                 head, size = (head + n) % cap, min(size + n, cap)

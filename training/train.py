@@ -42,9 +42,9 @@ log = logging.getLogger("racecav.train")
 
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
-               "init_from", "init_std")
+               "init_from", "init_std", "mirror_symmetric")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
-DAGGER_FLAGS = ("expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
+DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
 IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert_horizon_s", "expert_commit_s",
                    "dataset_max")
@@ -121,10 +121,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(p)
     add_stage_flags(p, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
-    from racecav.training import probe, select  # cheap modules: argument definitions only
+    from racecav.training import mirror, probe, select  # cheap modules: argument definitions only
 
     select.add_subcommands(sub)
     probe.add_subcommands(sub)
+    mirror.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -144,6 +145,10 @@ def run(args, cfg) -> int:
         from racecav.training.probe import probe
 
         return probe(args, cfg)
+    if args.train_cmd == "mirror":
+        from racecav.training.mirror import mirror
+
+        return mirror(args, cfg)
     from racecav.training import select
 
     return select.run(args, cfg)
@@ -214,10 +219,22 @@ def make_venv(tc, seed: int):
 def _ppo_kwargs(tc) -> dict:
     import torch
 
+    policy_kwargs = dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh)
+    if tc.mirror_symmetric:
+        policy_kwargs["obs_stack"] = tc.env.obs_stack
     return dict(n_steps=tc.n_steps, batch_size=tc.batch_size, n_epochs=tc.n_epochs, gamma=tc.gamma,
                 learning_rate=tc.learning_rate, gae_lambda=tc.gae_lambda, clip_range=tc.clip_range,
                 ent_coef=tc.ent_coef, vf_coef=tc.vf_coef, max_grad_norm=tc.max_grad_norm,
-                policy_kwargs=dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh))
+                policy_kwargs=policy_kwargs)
+
+
+def _policy_class(tc):
+    """SB3's MlpPolicy, or its mirror-symmetric version (training/symmetric.py)."""
+    if not tc.mirror_symmetric:
+        return "MlpPolicy"
+    from racecav.training.symmetric import MirrorMlpPolicy
+
+    return MirrorMlpPolicy
 
 
 # ----------------------------------------------------------------------------------- training
@@ -249,12 +266,18 @@ def train(args, cfg) -> int:
         truncate_csv(run_dir / "progress.csv", model.num_timesteps, CSV_FIELDS)
         log.info("resumed %s at %d samples", run_dir, model.num_timesteps)
     else:
-        model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        model = PPO(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         if tc.init_from:
             init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
+            if tc.mirror_symmetric:  # the nearest symmetric actor to the loaded one
+                model.policy.tied.project()
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     callbacks = [cb]
+    if tc.mirror_symmetric:
+        from racecav.training.symmetric import symmetric_stats_callback
+
+        callbacks.insert(0, symmetric_stats_callback(tc.env.obs_stack))
     if tc.bc_coef > 0:
         from racecav.training.imitation_term import make_callback
 
@@ -295,6 +318,10 @@ def open_run(args, cfg, run_dir: Path):
     except ValueError as e:
         print(f"racecav train: {e}")
         return None
+    if tc.stage == "dagger" and tc.mirror_symmetric:
+        print("racecav train dagger: --mirror-symmetric ties the weights through PPO's optimizer; "
+              "the imitation fits with its own (use it with racecav train overtake)")
+        return None
     if tc.stage == "dagger" and (not tc.init_from or not tc.normalize):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
@@ -332,7 +359,11 @@ def train_dagger(args, cfg) -> int:
         venv = init_normalization(VecNormalize(fast, norm_obs=True, norm_reward=False, gamma=tc.gamma), tc)
         model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
-    return imitate(model, venv, tc, run_dir, state, int(args.steps), progress=not args.no_progress)
+    try:
+        return imitate(model, venv, tc, run_dir, state, int(args.steps), progress=not args.no_progress)
+    except ValueError as e:  # a teacher that cannot label this env (training/mirror.py)
+        print(f"racecav train dagger: {e}")
+        return 2
 
 
 def init_normalization(venv, tc):

@@ -1,0 +1,107 @@
+"""The mirror teacher of ``racecav train dagger --expert mirror`` (training/mirror.py)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from racecav.common.config import EnvConfig
+from racecav.common.policy import load_policy
+from racecav.common.scenario import SCENARIOS_DIR
+from racecav.training.mirror import MirrorTeacher, mirror_action, mirror_scans
+from racecav.training.vec_env import FastVecEnv
+
+
+def test_mirror_reverses_each_stacked_scan_and_negates_the_steering():
+    obs = np.arange(2 * 2 * 5, dtype=np.float32).reshape(2, 10)  # 2 observations of 2 scans x 5 rays
+    m = mirror_scans(obs, obs_stack=2)
+    assert m[0].tolist() == [4, 3, 2, 1, 0, 9, 8, 7, 6, 5]
+    assert np.array_equal(mirror_scans(m, 2), obs)
+    a = np.array([[0.5, 0.2], [1.0, -1.0]], np.float32)
+    assert np.array_equal(mirror_action(a), np.array([[0.5, -0.2], [1.0, 1.0]], np.float32))
+    assert a[0, 1] == np.float32(0.2)  # a copy
+
+
+@pytest.fixture
+def crossings(tmp_path):
+    """A scenario folder with the paper's two side scenarios (families left-to-right, right-to-left)."""
+    for name in ("left-to-right", "right-to-left"):
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
+    return tmp_path
+
+
+def test_teacher_mirrors_only_a_mirrored_family_with_a_car_near_on_the_left(crossings):
+    """Label = the policy's own action, except in the left-to-right worlds once their car is
+    within reach on the ego's left: there the policy's action on the mirrored scans, mirrored."""
+    policy = load_policy("avoid")
+    env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2), seed=3)
+    teacher = MirrorTeacher(policy, env, ["left-to-right"])
+    env.reset()
+    (world,) = env.worlds
+    fam = np.array(world.scenario_families)[world.scenario_index]
+    assert {"left-to-right", "right-to-left"} <= set(fam)
+    seen_mirrored = np.zeros(env.num_envs, bool)
+    for _ in range(25):  # 2.5 s: the left car comes within NEAR_M
+        raw = env._stacked()
+        labels, mirrored = teacher.labels(raw)
+        assert not mirrored[fam != "left-to-right"].any()
+        own = policy(raw)
+        assert np.array_equal(labels[~mirrored], own[~mirrored])
+        if mirrored.any():
+            want = mirror_action(policy(mirror_scans(raw[mirrored], 2)))
+            assert np.allclose(labels[mirrored], want, atol=1e-6)
+            assert not np.allclose(labels[mirrored], own[mirrored], atol=1e-3)  # the policy is not symmetric
+        seen_mirrored |= mirrored
+        env.step(np.tile(np.array([0.2, 0.0], np.float32), (env.num_envs, 1)))
+    assert seen_mirrored[fam == "left-to-right"].all()
+    env.close()
+
+
+def test_teacher_names_a_family_the_scenarios_lack(crossings):
+    env = FastVecEnv(config=EnvConfig(n_envs=4, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2), seed=0)
+    with pytest.raises(ValueError, match=r"cross-left.*left-to-right', 'right-to-left"):
+        MirrorTeacher(load_policy("avoid"), env, ["cross-left"])
+    env.close()
+
+
+def test_dagger_with_the_mirror_teacher_runs_and_refuses_a_wrong_family(tmp_path, crossings, capsys):
+    import json
+
+    from racecav.cli import main
+
+    base = ["train", "dagger", "--no-progress", "--preset", "fast", "--n-envs", "8", "--n-steps", "8",
+            "--checkpoint-every", "64", "--grad-steps", "2", "--batch-size", "32", "--n-obstacles", "0",
+            "--scenarios", str(crossings), "--scenario-share", "1.0", "--obs-stack", "2", "--lidar", "wide",
+            "--init-from", "common/data/policies/avoid.zip", "--expert", "mirror"]
+    run = tmp_path / "run"
+    assert main(base + ["--run-dir", str(run), "--mirror-families", "left-to-right", "--steps", "128"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["expert"] == "mirror" and cfg["mirror_families"] == "left-to-right"
+    rows = (run / "progress.csv").read_text().splitlines()
+    assert len(rows) == 3 and float(rows[-1].split(",")[3]) >= 0.0  # loss column
+    assert main(base + ["--run-dir", str(tmp_path / "bad"), "--mirror-families", "cross-left", "--steps", "64"]) == 2
+    assert "--mirror-families" in capsys.readouterr().out
+
+
+def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_path):
+    """Mirroring twice gives the policy back; ``racecav train mirror`` writes the policy, its
+    mirror image and the two non-evading references as rows of one table."""
+    from racecav.cli import main
+    from racecav.training.mirror import MirroredPolicy
+
+    policy = load_policy("avoid")
+    scans = np.random.default_rng(0).uniform(0.2, 10.0, (32, policy.obs_dim)).astype(np.float32)
+    twice = MirroredPolicy(MirroredPolicy(policy))
+    assert np.allclose(twice(scans), policy(scans), atol=1e-6)
+    assert not np.allclose(MirroredPolicy(policy)(scans), policy(scans), atol=1e-3)
+    out = tmp_path / "mirror.md"
+    assert main(["train", "mirror", "--policy", "avoid", "--trials", "1", "--suite-episodes", "8", "--out", str(out)]) == 0
+    rows = [r for r in out.read_text().splitlines() if r.startswith("| ") and not r.startswith("| driver")]
+    assert [r.split(" | ")[0] for r in rows] == ["| avoid", "| avoid, mirrored", "| *straight 1 m/s* (no evasion)",
+                                                 "| *straight, full throttle* (no evasion)"]
+    with pytest.raises(SystemExit, match="--trials"):
+        main(["train", "mirror", "--policy", "avoid", "--trials", "0"])

@@ -1,0 +1,169 @@
+"""The mirror teacher of ``racecav train dagger --expert mirror``: a policy's own skill on one side,
+reflected onto the other.
+
+The intersection families come in mirror pairs (a car crossing from the left is a car crossing
+from the right seen in a mirror: common/data/suites/*.toml draw both from the same ranges), yet a
+trained policy is rarely symmetric. The shipped avoid passes 99 % of the suite's crossings from
+the right and 75-81 % of those from the left in the fast world, while the same network applied
+to the mirrored scan (steering negated) passes 96-99 % of those from the left
+(docs/training.md, row 22). The teacher labels each step of a world whose scenario is of a
+``families`` family (e.g. cross-left) with that mirrored action, and every other step with the
+policy's own action, so DAgger (training/dagger.py) fits one network to both: its skill on
+the right, reflected onto the left, and everything else as it was. The teacher reads which
+family a world runs (privileged, training only); the fitted policy sees only its scans.
+
+Mirroring the scan reverses the ray order of each stacked scan. The wide view's rays are not
+exactly symmetric about the heading (common/lidar.VIEWS: -168.5 to +167.5 paper increments), so
+the reflection is off by one paper increment (0.53 deg), half the wide view's ray spacing.
+
+``racecav train mirror --policy P`` measures a policy and its mirror image side by side on the
+selection split (select.selection_cells, plus the paper-timed suite's train split), the
+measurement behind the teacher.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def mirror_scans(obs: np.ndarray, obs_stack: int) -> np.ndarray:
+    """The observations (..., obs_stack * n_rays) seen in a mirror: each scan's rays reversed."""
+    obs = np.asarray(obs)
+    n = obs.shape[-1] // obs_stack
+    return obs.reshape(*obs.shape[:-1], obs_stack, n)[..., ::-1].reshape(obs.shape)
+
+
+def mirror_action(action: np.ndarray) -> np.ndarray:
+    """An action [a_T, a_delta] seen in a mirror: the steering negated."""
+    out = np.array(action, dtype=np.float32, copy=True)
+    out[..., 1] *= -1.0
+    return out
+
+
+NEAR_M = 5.0   # m: an actor this close (about where the crossings' cars come into view) ...
+LEFT_M = 0.3   # m: ... and this far to the ego's left makes the scene a mirrored one
+
+
+class MirrorTeacher:
+    """Labels for the worlds of a FastVecEnv: the frozen ``policy`` (a NumpyPolicy with its own
+    normalisation) on raw scans, mirrored in the worlds that run a scenario of ``families``.
+
+    :param families: family names without the suite (``cross-left`` matches every suite's).
+    :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
+        otherwise label nothing and fit the policy to itself).
+    """
+
+    def __init__(self, policy, fast_env, families: list[str]):
+        self.policy, self.fast = policy, fast_env
+        have = sorted({f.split("/")[-1] for w in fast_env.worlds if w.actors is not None
+                       for f in w.scenario_families})
+        unknown = [f for f in families if f not in have]
+        if not families or unknown:
+            raise ValueError(f"--mirror-families: {unknown or families} not among the scenario families {have}")
+        self.families = set(families)
+        # per world: a bool per scenario file, True where its family is mirrored
+        self._mirrored = [None if w.actors is None else
+                          np.array([f.split("/")[-1] in self.families for f in w.scenario_families])
+                          for w in fast_env.worlds]
+
+    def mirrored(self) -> np.ndarray:
+        """(N,) bool: the worlds whose current episode is a scenario of a mirrored family and
+        whose ego has an actor on its left within ``NEAR_M``. Before that the scene is about
+        symmetric, and the policy's own label keeps one answer per scan (mirrored labels there
+        would teach, e.g., the mirrored lane position for the same empty road)."""
+        out = []
+        for w, m in zip(self.fast.worlds, self._mirrored):
+            if m is None:
+                out.append(np.zeros(w.n_envs, bool))
+                continue
+            dx, dy = w.x[:, 1:] - w.x[:, :1], w.y[:, 1:] - w.y[:, :1]
+            c, s = np.cos(w.yaw[:, :1]), np.sin(w.yaw[:, :1])
+            ahead, left = c * dx + s * dy, -s * dx + c * dy
+            near = (np.hypot(dx, dy) < NEAR_M) & (left > LEFT_M) & (ahead > -0.5)
+            out.append(m[w.scenario_index] & near.any(axis=1))
+        return np.concatenate(out)
+
+    def labels(self, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(labels (N, 2), mirrored (N,)) for the raw (not normalised) stacked scans ``raw_obs``."""
+        mask = self.mirrored()
+        out = self.policy(raw_obs).copy()
+        if mask.any():
+            m = mirror_scans(raw_obs[mask], self.policy.obs_stack)
+            out[mask] = mirror_action(self.policy(m))
+        return out, mask
+
+
+class MirroredPolicy:
+    """``policy`` seen in a mirror: its action on the mirrored scans, mirrored (same view settings)."""
+
+    def __init__(self, policy):
+        self.policy = policy
+        self.lidar, self.obs_stack = policy.lidar, policy.obs_stack
+        self.obs_stride, self.brake_below = policy.obs_stride, policy.brake_below
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return mirror_action(self.policy(mirror_scans(obs, self.obs_stack)))
+
+
+def add_subcommands(sub) -> None:
+    p = sub.add_parser("mirror", help="a policy and its mirror image (scans and steering reflected) on the "
+                       "selection split: how asymmetric its skill is (training/mirror.py)")
+    p.add_argument("--policy", default="avoid", help="shipped policy name, .npz, or a run's checkpoint .zip")
+    p.add_argument("--trials", type=int, default=100, help="PyBullet trials per scenario (selection seeds)")
+    p.add_argument("--suite-episodes", type=int, default=1024, help="fast-world episodes per suite (train split)")
+    p.add_argument("--out", type=Path, help="also write the table here (.md)")
+    p.set_defaults(stage="mirror")
+
+
+COLUMNS = [("right-to-left_success", "paper R-L"), ("head-to-head_success", "paper H-H"),
+           ("left-to-right_success", "paper L-R"), ("conflict-right-to-left_success", "conflict R-L"),
+           ("conflict-head-to-head_success", "conflict H-H"), ("conflict-left-to-right_success", "conflict L-R"),
+           ("suite_success", "suite"), ("suite_cross-right", "suite cross-right"),
+           ("suite_cross-left", "suite cross-left"), ("suite_braking", "suite braking"),
+           ("suite_head-on", "suite head-on"), ("suite_staggered", "suite staggered"),
+           ("suite_stopped", "suite stopped"), ("suite_turning", "suite turning"),
+           ("paper-timed_cross-right", "paper-timed suite cross-right"),
+           ("paper-timed_cross-left", "paper-timed suite cross-left"), ("paper-timed_head-on", "paper-timed suite head-on")]
+"""(row key, column title) of the table."""
+
+
+def mirror(args, cfg) -> int:
+    """``racecav train mirror``: the table of a policy and its mirror image (and the references)."""
+    import torch
+    from tqdm import tqdm
+
+    from racecav.common.bench import git_commit
+    from racecav.common.config import EnvConfig
+    from racecav.common.policy import load_policy
+    from racecav.training.select import checkpoint_policy, eval_suite_fast, reference_drivers, selection_cells
+
+    torch.set_num_threads(1)
+    if args.trials < 1 or args.suite_episodes < 1:
+        raise SystemExit("racecav train mirror: --trials and --suite-episodes must be >= 1")
+    policy = checkpoint_policy(Path(args.policy)) if args.policy.endswith(".zip") else load_policy(args.policy)
+    md = getattr(policy, "metadata", {})
+    env = EnvConfig(scenarios="conflicts", scenario_share=1.0, lidar=md.get("lidar", "paper"),
+                    obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)
+    drivers = {f"{args.policy}": policy, f"{args.policy}, mirrored": MirroredPolicy(policy),
+               **{f"*{k}* (no evasion)": v for k, v in reference_drivers().items()}}
+    rows = []
+    for name, drv in tqdm(drivers.items(), desc="mirror", unit="driver"):
+        denv = env if name in (args.policy, f"{args.policy}, mirrored") else EnvConfig(scenarios="conflicts", scenario_share=1.0)
+        row = selection_cells(drv, denv, args.trials, args.suite_episodes, conflict=True)
+        paper = eval_suite_fast(drv, denv.model_copy(update={"scenarios": "paper-timed"}), args.suite_episodes)
+        row.update({"paper-timed_" + k[len("suite_"):]: v for k, v in paper.items() if k.startswith("suite_")})
+        rows.append({"driver": name, **row})
+    text = (f"`racecav train mirror --policy {args.policy} --trials {args.trials} --suite-episodes {args.suite_episodes}` "
+            f"(commit {git_commit()}): success on the selection split, {args.trials} PyBullet trials per scenario "
+            f"(selection seeds) and {args.suite_episodes} fast-world episodes per suite (train splits).\n\n"
+            "| driver | " + " | ".join(t for _, t in COLUMNS) + " |\n|---|" + "---:|" * len(COLUMNS) + "\n")
+    for r in rows:
+        text += f"| {r['driver']} | " + " | ".join(
+            f"{100 * r[k]:.0f} %" if k in r else "-" for k, _ in COLUMNS) + " |\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text)
+        print(f"wrote {args.out}")
+    return 0
