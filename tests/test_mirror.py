@@ -27,9 +27,11 @@ def test_mirror_reverses_each_stacked_scan_and_negates_the_steering():
 @pytest.fixture
 def crossings(tmp_path):
     """A scenario folder with the paper's two side scenarios (families left-to-right, right-to-left)."""
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
     for name in ("left-to-right", "right-to-left"):
-        shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
-    return tmp_path
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", folder / f"{name}.toml")
+    return folder
 
 
 def test_teacher_mirrors_only_a_mirrored_family_with_a_car_near_on_the_left(crossings):
@@ -87,7 +89,7 @@ def test_dagger_with_the_mirror_teacher_runs_and_refuses_a_wrong_family(tmp_path
     assert "--mirror-families" in capsys.readouterr().out
 
 
-def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_path):
+def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_path, crossings):
     """Mirroring twice gives the policy back; ``racecav train mirror`` writes the policy, its
     mirror image and the two non-evading references as rows of one table."""
     from racecav.cli import main
@@ -99,7 +101,8 @@ def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_pa
     assert np.allclose(twice(scans), policy(scans), atol=1e-6)
     assert not np.allclose(MirroredPolicy(policy)(scans), policy(scans), atol=1e-3)
     out = tmp_path / "mirror.md"
-    assert main(["train", "mirror", "--policy", "avoid", "--trials", "1", "--suite-episodes", "8", "--out", str(out)]) == 0
+    assert main(["train", "mirror", "--policy", "avoid", "--trials", "1", "--suite-episodes", "8", "--out", str(out),
+                 "--suite", str(crossings), "--paper-suite", str(crossings)]) == 0
     rows = [r for r in out.read_text().splitlines() if r.startswith("| ") and not r.startswith("| driver")]
     assert [r.split(" | ")[0] for r in rows] == ["| avoid", "| avoid, mirrored", "| *straight 1 m/s* (no evasion)",
                                                  "| *straight, full throttle* (no evasion)"]

@@ -113,6 +113,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--policy", default="avoid", help="shipped policy name, .npz, or a run's checkpoint .zip")
     p.add_argument("--trials", type=int, default=100, help="PyBullet trials per scenario (selection seeds)")
     p.add_argument("--suite-episodes", type=int, default=1024, help="fast-world episodes per suite (train split)")
+    p.add_argument("--suite", default="conflicts", help="the conflict suite (name, folder or file) of the suite columns")
+    p.add_argument("--paper-suite", default="paper-timed", help="the paper-timed suite (name, folder or file) of the last columns")
     p.add_argument("--out", type=Path, help="also write the table here (.md)")
     p.set_defaults(stage="mirror")
 
@@ -144,18 +146,19 @@ def mirror(args, cfg) -> int:
         raise SystemExit("racecav train mirror: --trials and --suite-episodes must be >= 1")
     policy = checkpoint_policy(Path(args.policy)) if args.policy.endswith(".zip") else load_policy(args.policy)
     md = getattr(policy, "metadata", {})
-    env = EnvConfig(scenarios="conflicts", scenario_share=1.0, lidar=md.get("lidar", "paper"),
+    env = EnvConfig(scenarios=args.suite, scenario_share=1.0, lidar=md.get("lidar", "paper"),
                     obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)
     drivers = {f"{args.policy}": policy, f"{args.policy}, mirrored": MirroredPolicy(policy),
                **{f"*{k}* (no evasion)": v for k, v in reference_drivers().items()}}
     rows = []
     for name, drv in tqdm(drivers.items(), desc="mirror", unit="driver"):
-        denv = env if name in (args.policy, f"{args.policy}, mirrored") else EnvConfig(scenarios="conflicts", scenario_share=1.0)
+        denv = env if name in (args.policy, f"{args.policy}, mirrored") else EnvConfig(scenarios=args.suite, scenario_share=1.0)
         row = selection_cells(drv, denv, args.trials, args.suite_episodes, conflict=True)
-        paper = eval_suite_fast(drv, denv.model_copy(update={"scenarios": "paper-timed"}), args.suite_episodes)
+        paper = eval_suite_fast(drv, denv.model_copy(update={"scenarios": args.paper_suite}), args.suite_episodes)
         row.update({"paper-timed_" + k[len("suite_"):]: v for k, v in paper.items() if k.startswith("suite_")})
         rows.append({"driver": name, **row})
-    text = (f"`racecav train mirror --policy {args.policy} --trials {args.trials} --suite-episodes {args.suite_episodes}` "
+    suites = "" if (args.suite, args.paper_suite) == ("conflicts", "paper-timed") else f" --suite {args.suite} --paper-suite {args.paper_suite}"
+    text = (f"`racecav train mirror --policy {args.policy} --trials {args.trials} --suite-episodes {args.suite_episodes}{suites}` "
             f"(commit {git_commit()}): success on the selection split, {args.trials} PyBullet trials per scenario "
             f"(selection seeds) and {args.suite_episodes} fast-world episodes per suite (train splits).\n\n"
             "| driver | " + " | ".join(t for _, t in COLUMNS) + " |\n|---|" + "---:|" * len(COLUMNS) + "\n")
