@@ -145,18 +145,17 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
             for _ in range(tc.n_steps):
                 if teacher is not None:
                     label, man = teacher.labels(venv.get_original_obs())
-                    # as the car acts (a policy's steering saturates beyond the range): the
-                    # loss then leaves a prediction alone that lies beyond the same bound
-                    label = np.clip(label, lo, hi)
                 else:
                     label = np.concatenate([e.act() for e in experts])
                     man = np.concatenate([e.last_best != 0 for e in experts])
+                # as the car acts (a policy teacher's steering saturates beyond the range; the
+                # planner's never does): the loss and the agreement then read a label beyond a
+                # bound as that bound
+                label = np.clip(label, lo, hi)
                 with torch.no_grad():
                     student = mean_action(policy, obs).numpy()
                 steer = np.clip(student[:, 1], lo[1], hi[1]) * fast.world.car.steer_gain
-                # both as the car steers: a label beyond the steering range acts as the range's end
-                label_steer = np.clip(label[:, 1], lo[1], hi[1]) * fast.world.car.steer_gain
-                agree += int((np.abs(steer - label_steer) < STEER_TOL).sum())
+                agree += int((np.abs(steer - label[:, 1] * fast.world.car.steer_gain) < STEER_TOL).sum())
                 k = np.arange(head, head + n) % cap
                 data_obs[k], data_act[k], data_man[k] = obs, label, man
                 head, size = (head + n) % cap, min(size + n, cap)
