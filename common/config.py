@@ -384,6 +384,9 @@ class EnvConfig(Section):
     It pays for keeping the lane until a conflict is certain, so an evasion waits until needed."""
     lane_keeping_horizon_s: float = Field(2.5, gt=0)
     """The look-ahead (s) of lane_keeping's "the lane is free"."""
+    flow_reward: float = Field(0.0, ge=0)
+    """Scenario episodes of the fast VecEnv: reward per metre the ego moves along the direction
+    of travel of a near crossing car (negative against it; training/flow_reward.py). 0: off."""
     brake_below: float | None = Field(None, gt=-1, le=0)
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The
@@ -435,6 +438,9 @@ class TrainConfig(Section):
     mirror_symmetric: bool = False
     """A mirror-symmetric actor: its action on the mirrored scans is its action mirrored (the
     same 2 x 64 tanh MlpPolicy with tied weights; training/symmetric.py)."""
+    mirror_augment: bool = False
+    """Every PPO update also fits its rollout seen in a mirror (scans reflected, steering negated,
+    the same advantages; training/augment.py)."""
     env: EnvConfig = EnvConfig(n_envs=1)
     """The training env (heading, obstacles, traffic driver, world, scenarios, observation...)."""
     # dagger stage only (training/dagger.py)

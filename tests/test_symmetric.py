@@ -48,9 +48,37 @@ def test_symmetric_run_trains_resumes_and_exports_an_exactly_symmetric_policy(tm
             assert np.allclose(pol.obs_mean, mirror_scans(pol.obs_mean, 2), atol=1e-6)
 
 
-def test_dagger_refuses_the_symmetric_actor(tmp_path, capsys):
+def test_dagger_fits_a_symmetric_actor_to_the_mirror_teacher(tmp_path):
+    import shutil
+
+    from racecav.common.scenario import SCENARIOS_DIR
+
+    """``train dagger --mirror-symmetric``: the actor stays tied through the imitation's own
+    optimizer, on symmetric (frozen) statistics, so its export is its own mirror image."""
+    from racecav.cli import main
+    from racecav.training.select import checkpoint_policy
+
+    crossings = tmp_path / "scenarios"
+    crossings.mkdir()
+    shutil.copy(SCENARIOS_DIR / "left-to-right.toml", crossings)
+    run = tmp_path / "d"
+    assert main(["train", "dagger", "--run-dir", str(run), "--preset", "fast", "--mirror-symmetric",
+                 "--expert", "mirror", "--mirror-families", "left-to-right", "--scenarios", str(crossings),
+                 "--scenario-share", "1.0", "--n-envs", "8", "--n-steps", "16", "--batch-size", "64",
+                 "--grad-steps", "5", "--checkpoint-every", "128", "--n-obstacles", "0", "--obs-stack", "2", "--lidar", "wide", "--lr", "1e-3",
+                 "--init-from", "common/data/policies/avoid.zip", "--steps", "256", "--no-progress"]) == 0
+    pol = checkpoint_policy(run / "latest.zip")
+    scans = np.random.default_rng(2).uniform(0.2, 12.0, (64, 2 * 169)).astype(np.float32)
+    assert np.allclose(MirroredPolicy(pol)(scans), pol(scans), atol=1e-5)
+    assert np.allclose(pol.obs_mean, mirror_scans(pol.obs_mean, 2), atol=1e-6)
+
+
+@pytest.mark.parametrize("stage,flags,says", [
+    ("overtake", ["--mirror-symmetric", "--mirror-augment"], "choose one"),
+    ("dagger", ["--mirror-augment", "--init-from", "common/data/policies/avoid.zip"], "--mirror-augment"),
+])
+def test_mirror_flags_that_do_not_combine_are_refused(tmp_path, capsys, stage, flags, says):
     from racecav.cli import main
 
-    assert main(["train", "dagger", "--run-dir", str(tmp_path / "d"), "--preset", "fast", "--mirror-symmetric",
-                 "--init-from", "common/data/policies/avoid.zip", "--steps", "64"]) == 2
-    assert "--mirror-symmetric" in capsys.readouterr().out
+    assert main(["train", stage, "--run-dir", str(tmp_path / "r"), "--preset", "fast", *flags, "--steps", "64"]) == 2
+    assert says in capsys.readouterr().out

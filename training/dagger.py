@@ -114,6 +114,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
         experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds], None
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
+    tied = getattr(policy, "tied", None)  # a mirror-symmetric actor stays tied (training/symmetric.py)
     scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
     lo, hi = action_bounds(fast.world.car)
     lo_t, hi_t = torch.as_tensor(lo), torch.as_tensor(hi)
@@ -183,6 +184,8 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
+                if tied is not None:
+                    tied.project()
                 losses.append(float(loss.detach()))
             dt = time.monotonic() - t_roll
             row = {"timesteps": samples, "wall_s": round(wall0 + time.monotonic() - t0, 2),

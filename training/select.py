@@ -739,7 +739,7 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-stride2", "avoid-papertimed"), ("avoid-papertimed-brake", "avoid-papertimed"),
             ("avoid-lane", "avoid-papertimed"), ("avoid-bc-commit", "avoid-bc"),
             ("avoid-boost", "avoid-papertimed-lowlr"), ("avoid-mirror", "avoid-papertimed-lowlr"),
-            ("avoid-sym", "avoid-papertimed-lowlr"))
+            ("avoid-sym", "avoid-papertimed-lowlr"), ("avoid-augment", "avoid-papertimed-lowlr"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -768,9 +768,10 @@ def _ablation_markdown() -> str:
         change = "the paper's observation, action and reward; conflict mix" if prev is None else ", ".join(
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
-                "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
+                "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
-                                                                          "expert_commit_s", "expert", "mirror_symmetric")
+                                                                          "expert_commit_s", "expert", "mirror_symmetric",
+                                                                          "mirror_augment")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]) or "-"
         if prev is not None:
             change = f"on {base}: {change}"
@@ -1077,7 +1078,23 @@ def _ablation_markdown() -> str:
           "0.263 to the right (common/data/cars/slash.toml), so a mirrored evasion to the right is a weaker "
           "one; in training it passes the conflict suite's crossings from the left more often than those from "
           "the right (32-57 % and 27-47 % from 10 M on). Stopped, below every earlier row; resumable (`racecav train overtake --resume "
-          "--run-dir runs/avoid-sym --steps 80e6` after copying training/checkpoints/avoid-sym to runs/).", ""]
+          "--run-dir runs/avoid-sym --steps 80e6` after copying training/checkpoints/avoid-sym to runs/). "
+          "An exactly symmetric actor has a second handicap: in a scene that is its own mirror image (a car "
+          "or a stopped car dead ahead) its steering is zero, so it must break the tie from the small "
+          "asymmetries of the scene; its head-on cells (paper-timed 57 %, conflict-timed 58 %) are as low as "
+          "its crossings. "
+          "Row 24 (avoid-augment) keeps row 16's network and PPO's objective and lets every update also fit "
+          "its rollout seen in a mirror (`--mirror-augment`, training/augment.py: each sample's scans "
+          "reflected and its steering negated, with the same return and advantage and the policy's own "
+          "log-probability as the old one, so PPO's ratio starts at 1 and its clip bounds each update; the "
+          "usual symmetry augmentation for PPO), from row 16's 4 M checkpoint with its flags and learning "
+          "rate. It collapses within 0.5 M samples: the reflected samples ask a lopsided policy for the "
+          "opposite steering in the same scenes (PPO's approx_kl a median 13 per update and up to 3e9, "
+          "against 0.006-0.015 for row 16; progress.csv), and the way from a policy that turns left for every car to one that turns each way "
+          "passes through one that turns neither way: the conflict-timed scenarios fall to 0-6 % at once "
+          "(the paper-timed ones hold 95 / 96 / 52 % at 0.5 M, a straight car's strategy), the suite to "
+          "36 % and then 23 %; scores 0.40, 0.22 and 0.19 at 0.5, 1.0 and 1.5 M (5 min, a median 4.7 k samples/s: each update "
+          "fits twice the samples). Stopped, rejected.", ""]
     mirror_md = COMMITTED / "mirror-avoid.md"
     if mirror_md.is_file():
         L += ["### The shipped avoid and its mirror image", "",

@@ -42,7 +42,7 @@ log = logging.getLogger("racecav.train")
 
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
-               "init_from", "init_std", "mirror_symmetric")
+               "init_from", "init_std", "mirror_symmetric", "mirror_augment")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
@@ -53,7 +53,7 @@ ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-o
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
              "contact_penalty": "--contact-penalty", "lane_keeping": "--lane-keeping",
-             "lane_keeping_horizon_s": "--lane-keeping-horizon",
+             "lane_keeping_horizon_s": "--lane-keeping-horizon", "flow_reward": "--flow-reward",
              "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
              "curriculum_boost": "--curriculum-boost", "lidar": "--lidar"}
 """EnvConfig fields that are flags (field -> flag)."""
@@ -228,6 +228,17 @@ def _ppo_kwargs(tc) -> dict:
                 policy_kwargs=policy_kwargs)
 
 
+def _algorithm(tc):
+    """SB3's PPO, or its mirror-augmented version (training/augment.py)."""
+    from stable_baselines3 import PPO
+
+    if not tc.mirror_augment:
+        return PPO
+    from racecav.training.augment import mirror_augmented_ppo
+
+    return mirror_augmented_ppo()
+
+
 def _policy_class(tc):
     """SB3's MlpPolicy, or its mirror-symmetric version (training/symmetric.py)."""
     if not tc.mirror_symmetric:
@@ -240,7 +251,6 @@ def _policy_class(tc):
 # ----------------------------------------------------------------------------------- training
 def train(args, cfg) -> int:
     import torch
-    from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     torch.set_num_threads(1)
@@ -262,15 +272,17 @@ def train(args, cfg) -> int:
         else:
             venv = init_normalization(VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma), tc)
     if args.resume:
-        model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
+        model = _algorithm(tc).load(run_dir / "latest.zip", env=venv, device="cpu")
         truncate_csv(run_dir / "progress.csv", model.num_timesteps, CSV_FIELDS)
         log.info("resumed %s at %d samples", run_dir, model.num_timesteps)
     else:
-        model = PPO(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        model = _algorithm(tc)(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         if tc.init_from:
             init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
             if tc.mirror_symmetric:  # the nearest symmetric actor to the loaded one
                 model.policy.tied.project()
+    if tc.mirror_augment:
+        model.mirror_obs_stack = tc.env.obs_stack
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     callbacks = [cb]
@@ -318,9 +330,12 @@ def open_run(args, cfg, run_dir: Path):
     except ValueError as e:
         print(f"racecav train: {e}")
         return None
-    if tc.stage == "dagger" and tc.mirror_symmetric:
-        print("racecav train dagger: --mirror-symmetric ties the weights through PPO's optimizer; "
-              "the imitation fits with its own (use it with racecav train overtake)")
+    if tc.mirror_symmetric and tc.mirror_augment:
+        print("racecav train: --mirror-symmetric and --mirror-augment: a symmetric actor gains nothing from "
+              "its reflected rollouts (choose one)")
+        return None
+    if tc.stage == "dagger" and tc.mirror_augment:
+        print("racecav train dagger: --mirror-augment reflects PPO's rollouts (use it with racecav train overtake)")
         return None
     if tc.stage == "dagger" and (not tc.init_from or not tc.normalize):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
@@ -357,8 +372,13 @@ def train_dagger(args, cfg) -> int:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
     else:
         venv = init_normalization(VecNormalize(fast, norm_obs=True, norm_reward=False, gamma=tc.gamma), tc)
-        model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        model = PPO(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
+        if tc.mirror_symmetric:  # the nearest symmetric actor, on symmetric (then frozen) statistics
+            from racecav.training.symmetric import symmetrize_stats
+
+            model.policy.tied.project()
+            symmetrize_stats(venv.obs_rms, tc.env.obs_stack)
     try:
         return imitate(model, venv, tc, run_dir, state, int(args.steps), progress=not args.no_progress)
     except ValueError as e:  # a teacher that cannot label this env (training/mirror.py)

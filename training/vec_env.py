@@ -25,6 +25,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
+from racecav.training.flow_reward import flow_reward, flow_weights
 
 
 class FamilyCurriculum:
@@ -160,12 +161,17 @@ class FastVecEnv(VecEnv):
         obs_parts, thr, a_d, col, trunc, succ, dprog = [], [], [], [], [], [], []
         # from the state the actions are taken in
         lane = self.lane_keeping.penalty(self._actions) if self.lane_keeping is not None else None
+        flow = [] if self.settings.flow_reward else None
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
+            if flow is not None:  # the crossing cars' flow before the step, the ego's motion over it
+                directions, x0, y0 = flow_weights(w), w.x[:, 0].copy(), w.y[:, 0].copy()
             a = self._actions[sl]
             bb = self.settings.brake_below  # None (the paper's action): no brake mask on the hot path
             o, (t, d), c, _info = w.step(a, brake=None if bb is None else brake_from_action(a[:, 0], bb))
             dprog.append(w.progress() - p0)
+            if flow is not None:
+                flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
             obs_parts.append(o)
             thr.append(t)
             a_d.append(d)
@@ -182,6 +188,8 @@ class FastVecEnv(VecEnv):
             rewards = rewards + (self.settings.progress_reward * np.concatenate(dprog)).astype(np.float32)
         if lane is not None:
             rewards = rewards + lane
+        if flow is not None:
+            rewards = rewards + np.concatenate(flow)
         self.a_prev[:] = a_delta
         self._stack[:, 1:] = self._stack[:, :-1]
         self._stack[:, 0] = obs
