@@ -138,13 +138,12 @@ def mirror(args, cfg) -> int:
 
     from racecav.common.bench import git_commit
     from racecav.common.config import EnvConfig
-    from racecav.common.policy import load_policy
-    from racecav.training.select import checkpoint_policy, eval_suite_fast, reference_drivers, selection_cells
+    from racecav.training.select import eval_suite_fast, named_policy, reference_drivers, selection_cells
 
     torch.set_num_threads(1)
     if args.trials < 1 or args.suite_episodes < 1:
         raise SystemExit("racecav train mirror: --trials and --suite-episodes must be >= 1")
-    policy = checkpoint_policy(Path(args.policy)) if args.policy.endswith(".zip") else load_policy(args.policy)
+    policy = named_policy(args.policy)
     md = getattr(policy, "metadata", {})
     env = EnvConfig(scenarios=args.suite, scenario_share=1.0, lidar=md.get("lidar", "paper"),
                     obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)

@@ -172,8 +172,7 @@ def fit_probe(x0, x1, v0, v1, seed: int = 0) -> dict:
 def probe(args, cfg) -> int:
     import torch
 
-    from racecav.common.policy import load_policy
-    from racecav.training.select import checkpoint_policy, reference_drivers
+    from racecav.training.select import named_policy, reference_drivers
 
     torch.set_num_threads(1)
     sources = [s.strip() for s in args.sources.split(",") if s.strip()]
@@ -183,7 +182,7 @@ def probe(args, cfg) -> int:
     strides = [int(s) for s in _floats(args.strides, "--strides")]
     if any(s < 0 for s in strides) or any(d <= 0 for d in distances) or args.n < 1 or args.late_n < 0:
         raise SystemExit("racecav train probe: --strides must be >= 0, --distances > 0, --n >= 1 and --late-n >= 0")
-    policy = checkpoint_policy(Path(args.policy)) if args.policy.endswith(".zip") else load_policy(args.policy)
+    policy = named_policy(args.policy)
     data = [collect(policy, src, args.family, args.n, distances, strides, args.seed + 7919 * k)
             for k, src in enumerate(sources)]
     # the non-evading references on the same worlds and seeds, beside the policy's success
