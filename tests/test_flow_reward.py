@@ -40,3 +40,13 @@ def test_no_term_without_a_crossing_car():
     # head-on: the oncoming car does not cross; off (weight 0) nothing changes either
     assert _flow_term("head-to-head", 1.0) == pytest.approx(0.0, abs=1e-3)
     assert _flow_term("left-to-right", 1.0, weight=0.0) == 0.0
+
+
+def test_the_gym_env_refuses_the_term():
+    # the single-env gym env keeps the paper's reward: the term is the training VecEnv's only
+    import gymnasium as gym
+
+    import racecav.training.env  # noqa: F401  (registers racecav/Overtake-v0)
+
+    with pytest.raises(ValueError, match="flow_reward"):
+        gym.make("racecav/Overtake-v0", config=EnvConfig(flow_reward=5.0, n_obstacles=0, backend="fast"))
