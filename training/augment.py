@@ -15,7 +15,9 @@ the reflected experience (the usual symmetry augmentation for PPO, e.g. Mittal e
 The world is only nearly symmetric: the car steers 0.313 rad to the left and 0.263 to the right
 (common/data/cars/slash.toml), so a reflected left turn beyond 0.263 rad is one the car clips,
 and the wide view's rays are reflected to within half a ray spacing (training/mirror.py).
-Each update costs about twice as much (twice the samples per epoch).
+Each update costs about twice as much (twice the samples per epoch). Measured from the
+lopsided shipped avoid (docs/training.md, row 24): it collapses within 0.5 M samples, the way
+from one turn for every car to a turn for each side passing through no turn at all.
 """
 
 from __future__ import annotations

@@ -1134,9 +1134,9 @@ def _ablation_markdown() -> str:
           "4 M, which stays the targets' pick. Its 2 M checkpoint is committed "
           "(training/checkpoints/avoid-flow60/checkpoints/). "
           "Row 27 (avoid-flow60-std) continues row 26 from that checkpoint with a wider steering noise "
-          "(`--init-std 0.3`; the steering's std had fallen to 0.08, so near a crossing car, where the "
-          "policy's steering is mostly beyond the car's range, its exploration hardly changed what the car "
-          "did). 10.3 M samples in 23 min: scores 0.88-0.91 over 7 evaluated checkpoints, the paper-timed "
+          "(`--init-std 0.3`: the action stds of that checkpoint, its log_std, are 0.53 for the throttle "
+          "and 0.08 for the steering, which explores little, and a steering beyond the car's range, "
+          "clipped by the actuation, does not explore at all). 10.3 M samples in 23 min: scores 0.88-0.91 over 7 evaluated checkpoints, the paper-timed "
           "left-to-right at 58-82 % and the conflict-timed head-on at 66-98 %, with the std back at 0.22 by "
           "10 M: the same trade-off. Stopped, rejected.", ""]
     mirror_md = COMMITTED / "mirror-avoid.md"
