@@ -36,7 +36,8 @@ def test_the_reflected_half_of_the_buffer_is_the_rollout_in_a_mirror(tmp_path):
     rms, eps = venv.obs_rms, venv.epsilon
     raw = real["observations"] * np.sqrt(rms.var + eps) + rms.mean
     mirrored = buf.observations[:, 4:] * np.sqrt(rms.var + eps) + rms.mean
-    inside = (np.abs(buf.observations[:, 4:]) < venv.clip_obs) & (np.abs(mirror_scans(real["observations"], 2)) < venv.clip_obs)
+    inside = ((np.abs(buf.observations[:, 4:]) < venv.clip_obs)
+              & (np.abs(mirror_scans(real["observations"], 2)) < venv.clip_obs))
     assert inside.mean() > 0.9  # (VecNormalize clips at +-10: a clipped value has no raw value)
     assert np.allclose(mirrored[inside], mirror_scans(raw, 2)[inside], atol=1e-3)
     assert np.array_equal(buf.actions[:, 4:, 0], real["actions"][..., 0])

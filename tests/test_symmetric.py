@@ -49,13 +49,12 @@ def test_symmetric_run_trains_resumes_and_exports_an_exactly_symmetric_policy(tm
 
 
 def test_dagger_fits_a_symmetric_actor_to_the_mirror_teacher(tmp_path):
-    import shutil
-
-    from racecav.common.scenario import SCENARIOS_DIR
-
     """``train dagger --mirror-symmetric``: the actor stays tied through the imitation's own
     optimizer, on symmetric (frozen) statistics, so its export is its own mirror image."""
+    import shutil
+
     from racecav.cli import main
+    from racecav.common.scenario import SCENARIOS_DIR
     from racecav.training.select import checkpoint_policy
 
     crossings = tmp_path / "scenarios"
@@ -65,7 +64,8 @@ def test_dagger_fits_a_symmetric_actor_to_the_mirror_teacher(tmp_path):
     assert main(["train", "dagger", "--run-dir", str(run), "--preset", "fast", "--mirror-symmetric",
                  "--expert", "mirror", "--mirror-families", "left-to-right", "--scenarios", str(crossings),
                  "--scenario-share", "1.0", "--n-envs", "8", "--n-steps", "16", "--batch-size", "64",
-                 "--grad-steps", "5", "--checkpoint-every", "128", "--n-obstacles", "0", "--obs-stack", "2", "--lidar", "wide", "--lr", "1e-3",
+                 "--grad-steps", "5", "--checkpoint-every", "128", "--n-obstacles", "0", "--obs-stack", "2",
+                 "--lidar", "wide", "--lr", "1e-3",
                  "--init-from", "common/data/policies/avoid.zip", "--steps", "256", "--no-progress"]) == 0
     pol = checkpoint_policy(run / "latest.zip")
     scans = np.random.default_rng(2).uniform(0.2, 12.0, (64, 2 * 169)).astype(np.float32)
