@@ -299,12 +299,12 @@ class Service:
                 data = encode(out) if isinstance(out, Message) else json.dumps(out).encode()
                 query.reply(key, data)
             except ValueError as e:  # a bad payload, refused by the handler
+                self._record_error(f"query {leaf}: {e}")  # the cause before the count
                 self.invalid += 1
-                self._record_error(f"query {leaf}: {e}")
                 self._reply_err(query, str(e))
             except Exception as e:  # a bad query must not kill the service
-                self.errors += 1
                 self._record_error(f"query {leaf}: {type(e).__name__}: {e}", e)
+                self.errors += 1
                 self._reply_err(query, f"{type(e).__name__}: {e}")
 
         self._declared.append(self.session.declare_queryable(key, on_query))
@@ -328,8 +328,8 @@ class Service:
         try:
             return decode(data, cls, self.cfg.bus.max_payload_bytes)
         except DecodeError as e:
-            self.invalid += 1
             self._record_error(f"invalid payload on {key}: {e}")
+            self.invalid += 1
             return None
 
     def _record_error(self, text: str, exc: BaseException | None = None) -> None:
@@ -461,6 +461,7 @@ class _Guard:
     def __exit__(self, typ, exc, tb) -> bool:
         if exc is None or not isinstance(exc, Exception):
             return False
-        self.service.errors += 1
+        # The cause before the count: a status taken in between must not pair them wrongly.
         self.service._record_error(f"{self.where}: {typ.__name__}: {exc}", exc)
+        self.service.errors += 1
         return True

@@ -118,11 +118,12 @@ class RplidarDriver:
                     try:
                         self._session()
                     except (DeviceError, rp.ProtocolError) as e:
-                        self.stats.restarts += 1
+                        # The error first: a reader that sees the count also sees its cause.
                         self._set_state("restarting", f"device error: {e}")
+                        self.stats.restarts += 1
             except (serial.SerialException, OSError) as e:
-                self.stats.disconnects += 1
                 self._set_state("disconnected", f"port {self.port} failed: {e}")
+                self.stats.disconnects += 1
             finally:
                 self._close()
         self.state = "stopped"
