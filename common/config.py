@@ -441,6 +441,9 @@ class TrainConfig(Section):
     mirror_augment: bool = False
     """Every PPO update also fits its rollout seen in a mirror (scans reflected, steering negated,
     the same advantages; training/augment.py)."""
+    steer_bound_coef: float = Field(0.0, ge=0)
+    """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
+    actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""
     env: EnvConfig = EnvConfig(n_envs=1)
     """The training env (heading, obstacles, traffic driver, world, scenarios, observation...)."""
     # dagger stage only (training/dagger.py)

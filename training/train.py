@@ -42,7 +42,7 @@ log = logging.getLogger("racecav.train")
 
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
-               "init_from", "init_std", "mirror_symmetric", "mirror_augment")
+               "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
@@ -229,14 +229,19 @@ def _ppo_kwargs(tc) -> dict:
 
 
 def _algorithm(tc):
-    """SB3's PPO, or its mirror-augmented version (training/augment.py)."""
+    """SB3's PPO, its mirror-augmented version (training/augment.py) or its version with a loss on
+    the steering mean beyond the car's range (training/bounds.py)."""
     from stable_baselines3 import PPO
 
-    if not tc.mirror_augment:
-        return PPO
-    from racecav.training.augment import mirror_augmented_ppo
+    if tc.mirror_augment:
+        from racecav.training.augment import mirror_augmented_ppo
 
-    return mirror_augmented_ppo()
+        return mirror_augmented_ppo()
+    if tc.steer_bound_coef > 0:
+        from racecav.training.bounds import bounded_ppo
+
+        return bounded_ppo()
+    return PPO
 
 
 def _policy_class(tc):
@@ -283,6 +288,11 @@ def train(args, cfg) -> int:
                 model.policy.tied.project()
     if tc.mirror_augment:
         model.mirror_obs_stack = tc.env.obs_stack
+    if tc.steer_bound_coef > 0:
+        from racecav.training.bounds import steer_bounds
+        from racecav.training.env import env_car
+
+        model.bound_coef, model.bounds = tc.steer_bound_coef, steer_bounds(env_car(tc.env))
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     callbacks = [cb]
@@ -333,6 +343,10 @@ def open_run(args, cfg, run_dir: Path):
     if tc.mirror_symmetric and tc.mirror_augment:
         print("racecav train: --mirror-symmetric and --mirror-augment: a symmetric actor gains nothing from "
               "its reflected rollouts (choose one)")
+        return None
+    if tc.steer_bound_coef > 0 and (tc.stage == "dagger" or tc.mirror_augment or tc.ent_coef <= 0):
+        print("racecav train: --steer-bound-coef adds a term to PPO's own loss through its entropy term: it needs "
+              "--ent-coef > 0, and neither dagger nor --mirror-augment (training/bounds.py)")
         return None
     if tc.stage == "dagger" and tc.mirror_augment:
         print("racecav train dagger: --mirror-augment reflects PPO's rollouts (use it with racecav train overtake)")
