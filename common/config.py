@@ -441,6 +441,10 @@ class TrainConfig(Section):
     mirror_augment: bool = False
     """Every PPO update also fits its rollout seen in a mirror (scans reflected, steering negated,
     the same advantages; training/augment.py)."""
+    sde_sample_freq: int | None = Field(None, ge=-1)
+    """Generalised state-dependent exploration (SB3's ``use_sde``): the action noise is a random
+    linear function of the policy's last hidden layer, drawn anew every this many steps (-1: once
+    per rollout), so an exploratory turn lasts. None: SB3's independent noise at every step."""
     steer_bound_coef: float = Field(0.0, ge=0)
     """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
     actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""

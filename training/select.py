@@ -781,7 +781,7 @@ def _ablation_markdown() -> str:
                 "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
                                                                           "expert_commit_s", "expert", "mirror_symmetric",
-                                                                          "mirror_augment", "steer_bound_coef")
+                                                                          "mirror_augment", "steer_bound_coef", "sde_sample_freq")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
             # a reset of the loaded policy's action std (None: kept as trained, not a change)
             + ([f"init_std {prev.init_std} -> {tc.init_std}"] if tc.init_std not in (None, prev.init_std) else [])) or "-"

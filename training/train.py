@@ -42,7 +42,8 @@ log = logging.getLogger("racecav.train")
 
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
-               "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef")
+               "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
+               "sde_sample_freq")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
@@ -222,7 +223,8 @@ def _ppo_kwargs(tc) -> dict:
     policy_kwargs = dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh)
     if tc.mirror_symmetric:
         policy_kwargs["obs_stack"] = tc.env.obs_stack
-    return dict(n_steps=tc.n_steps, batch_size=tc.batch_size, n_epochs=tc.n_epochs, gamma=tc.gamma,
+    sde = {} if tc.sde_sample_freq is None else dict(use_sde=True, sde_sample_freq=tc.sde_sample_freq)
+    return dict(**sde, n_steps=tc.n_steps, batch_size=tc.batch_size, n_epochs=tc.n_epochs, gamma=tc.gamma,
                 learning_rate=tc.learning_rate, gae_lambda=tc.gae_lambda, clip_range=tc.clip_range,
                 ent_coef=tc.ent_coef, vf_coef=tc.vf_coef, max_grad_norm=tc.max_grad_norm,
                 policy_kwargs=policy_kwargs)
@@ -283,7 +285,13 @@ def train(args, cfg) -> int:
     else:
         model = _algorithm(tc)(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         if tc.init_from:
-            init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
+            try:
+                init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
+                if tc.sde_sample_freq is not None:
+                    calibrate_sde(model, venv.reset(), tc.init_std or source_std(Path(tc.init_from)))
+            except ValueError as e:  # a policy these settings cannot start from
+                print(f"racecav train: {e}")
+                return 2
             if tc.mirror_symmetric:  # the nearest symmetric actor to the loaded one
                 model.policy.tied.project()
     if tc.mirror_augment:
@@ -347,6 +355,10 @@ def open_run(args, cfg, run_dir: Path):
     if tc.steer_bound_coef > 0 and (tc.stage == "dagger" or tc.mirror_augment or tc.ent_coef <= 0):
         print("racecav train: --steer-bound-coef adds a term to PPO's own loss through its entropy term: it needs "
               "--ent-coef > 0, and neither dagger nor --mirror-augment (training/bounds.py)")
+        return None
+    if tc.sde_sample_freq is not None and (tc.stage == "dagger" or tc.mirror_symmetric):
+        print("racecav train: --sde-sample-freq (gSDE) explores in PPO's rollouts, with SB3's MlpPolicy "
+              "(use it with racecav train overtake, without --mirror-symmetric)")
         return None
     if tc.stage == "dagger" and tc.mirror_augment:
         print("racecav train dagger: --mirror-augment reflects PPO's rollouts (use it with racecav train overtake)")
@@ -426,8 +438,9 @@ def _source_env(path: Path, key: str, default):
     meta = path.with_suffix(".json")
     if meta.is_file() and key in (m := json.loads(meta.read_text())):
         return m[key]
-    if (path.parent.parent / "config.json").is_file():
-        return getattr(load_run_config(path.parent.parent)[0].env, key)
+    run_dir = path.parent.parent if path.parent.name == "checkpoints" else path.parent  # a checkpoint or latest.zip
+    if (run_dir / "config.json").is_file():
+        return getattr(load_run_config(run_dir)[0].env, key)
     return default
 
 
@@ -510,7 +523,7 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     dst = model.policy.state_dict()
     n_stack = dst["mlp_extractor.policy_net.0.weight"].shape[1] // view.n_rays
     for k, v in src.items():
-        if k in dst and (dst[k].shape != v.shape or (k.endswith("net.0.weight") and src_view != view)):
+        if k in dst and k != "log_std" and (dst[k].shape != v.shape or (k.endswith("net.0.weight") and src_view != view)):
             if k.endswith("net.0.weight") and v.shape[1] % src_view.n_rays == 0:
                 src[k] = torch.as_tensor(map_inputs(v.numpy(), src_view, view, n_stack))
             if src[k].shape != dst[k].shape:
@@ -521,7 +534,38 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
             src[k] = torch.as_tensor(restride(src[k].numpy(), view.n_rays, stride / src_stride), dtype=src[k].dtype)
     if std is not None:
         src["log_std"] = torch.full_like(src["log_std"], float(np.log(std)))
+    if src["log_std"].shape != dst["log_std"].shape:  # one of the two explores with gSDE
+        if dst["log_std"].dim() == 1 and std is None:
+            raise ValueError(f"--init-from {path}: a gSDE policy into one without: give its noise with --init-std")
+        src["log_std"] = dst["log_std"] if dst["log_std"].dim() == 2 else torch.full_like(dst["log_std"], float(np.log(std)))
     model.policy.load_state_dict(src, strict=True)
+
+
+def source_std(path: Path):
+    """The action std (per action) of the SB3 zip ``path`` without gSDE."""
+    import torch
+    from stable_baselines3 import PPO
+
+    log_std = PPO.load(path, device="cpu").policy.state_dict()["log_std"]
+    if log_std.dim() != 1:
+        raise ValueError(f"{path}: a gSDE policy has no single action std: give one with --init-std")
+    return torch.exp(log_std).numpy()
+
+
+def calibrate_sde(model, obs, std) -> None:
+    """Set a gSDE policy's noise weights so that its action std, averaged over the normalised
+    observations ``obs``, is ``std`` (a number, or one per action): the noise of the action ``a``
+    has the variance ``sum_j latent_j^2 sigma_ja^2`` over the last hidden layer's ``latent``."""
+    import numpy as np
+    import torch
+
+    policy = model.policy
+    with torch.no_grad():
+        feats = policy.extract_features(torch.as_tensor(obs, dtype=torch.float32), policy.pi_features_extractor)
+        latent_sq = float((policy.mlp_extractor.forward_actor(feats) ** 2).sum(1).mean())
+        sigma = torch.as_tensor(np.broadcast_to(np.asarray(std, np.float32), (policy.log_std.shape[1],)).copy())
+        policy.log_std.copy_(torch.log(sigma / np.sqrt(latent_sq)).expand_as(policy.log_std))
+    policy.reset_noise(model.n_envs)
 
 
 def _configure_logger(model, run_dir: Path) -> None:
