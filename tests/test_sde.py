@@ -47,6 +47,8 @@ def test_a_gsde_run_starts_from_a_policy_with_its_means_and_the_asked_std(tmp_pa
 
 
 def test_a_gsde_policy_into_one_without_needs_an_std(tmp_path):
+    from stable_baselines3 import PPO
+
     from racecav.cli import main
 
     src = tmp_path / "src"
@@ -55,3 +57,8 @@ def test_a_gsde_policy_into_one_without_needs_an_std(tmp_path):
                  "--init-from", str(src / "latest.zip"), *FLAGS]) != 0
     assert main(["train", "overtake", "--run-dir", str(tmp_path / "b"), "--steps", "0",
                  "--init-from", str(src / "latest.zip"), "--init-std", "0.3", *FLAGS]) == 0
+    # gSDE into gSDE: the source's noise weights go on
+    assert main(["train", "overtake", "--run-dir", str(tmp_path / "c"), "--steps", "64", "--sde-sample-freq", "8",
+                 "--init-from", str(src / "latest.zip"), "--learning-rate", "1e-12", *FLAGS]) == 0
+    a, c = (PPO.load(p / "latest.zip", device="cpu").policy.log_std for p in (src, tmp_path / "c"))
+    assert torch.allclose(a, c, atol=1e-6)

@@ -287,8 +287,10 @@ def train(args, cfg) -> int:
         if tc.init_from:
             try:
                 init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
-                if tc.sde_sample_freq is not None:
-                    calibrate_sde(model, venv.reset(), tc.init_std or source_std(Path(tc.init_from)))
+                if tc.sde_sample_freq is not None:  # the asked noise, else the source's (a gSDE one is loaded)
+                    std = tc.init_std or source_std(Path(tc.init_from))
+                    if std is not None:
+                        calibrate_sde(model, venv.reset(), std)
             except ValueError as e:  # a policy these settings cannot start from
                 print(f"racecav train: {e}")
                 return 2
@@ -542,14 +544,13 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
 
 
 def source_std(path: Path):
-    """The action std (per action) of the SB3 zip ``path`` without gSDE."""
+    """The action std (per action) of the SB3 zip ``path``; None for a gSDE policy (its std
+    depends on the state)."""
     import torch
     from stable_baselines3 import PPO
 
     log_std = PPO.load(path, device="cpu").policy.state_dict()["log_std"]
-    if log_std.dim() != 1:
-        raise ValueError(f"{path}: a gSDE policy has no single action std: give one with --init-std")
-    return torch.exp(log_std).numpy()
+    return torch.exp(log_std).numpy() if log_std.dim() == 1 else None
 
 
 def calibrate_sde(model, obs, std) -> None:
