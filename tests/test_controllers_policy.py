@@ -40,8 +40,10 @@ def random_policy_file(path, seed: int = 0, normalize: bool = True, view: str = 
     return path
 
 
-def test_numpy_policy_equals_sb3_reference(tmp_path):
-    """The numpy path (no torch) equals SB3's deterministic predict within 1e-5."""
+@pytest.mark.parametrize("use_sde", [False, True], ids=["gaussian", "gsde"])
+def test_numpy_policy_equals_sb3_reference(tmp_path, use_sde):
+    """The numpy path (no torch) equals SB3's deterministic predict within 1e-5, also for a policy
+    trained with gSDE (``--sde-sample-freq``: its noise weights are not part of the action)."""
     import gymnasium as gym
     import torch
     from stable_baselines3 import PPO
@@ -62,7 +64,7 @@ def test_numpy_policy_equals_sb3_reference(tmp_path):
             return np.full(170, 5.0, np.float32), 0.0, True, False, {}
 
     model = PPO("MlpPolicy", Dummy(), policy_kwargs=dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh),
-                device="cpu", seed=0)
+                device="cpu", seed=0, use_sde=use_sde)
     with torch.no_grad():  # a non-trivial action head (fresh PPO heads are near zero)
         model.policy.action_net.weight.mul_(100.0)
     rms = RunningMeanStd(shape=(170,))
