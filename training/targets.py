@@ -104,7 +104,7 @@ def section(records: Path, shipped: dict) -> str:
         status = f"The targets' pick, {where}, is the shipped avoid."
     else:
         status = (f"The targets' pick, {where}, is not shipped yet: the shipped avoid is {shipped['run']} at "
-                  f"{shipped['training_steps'] / 1e6:.1f} M samples, the best score. Shipping the pick "
+                  f"{shipped['training_steps'] / 1e6:.1f} M samples. Shipping the pick "
                   "(`racecav train ship --checkpoint STEP --name avoid` on a copy of its run folder, "
                   "training/checkpoints/RUN/checkpoints/ holds it) changes every avoid cell of docs/results.md "
                   "and the README, so it waits for a full `racecav eval --table` run with it (about 36 k trials "
