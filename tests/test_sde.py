@@ -33,7 +33,8 @@ def test_a_gsde_run_starts_from_a_policy_with_its_means_and_the_asked_std(tmp_pa
     calibrate_sde(b, first, 0.3)
     a = PPO.load(src / "latest.zip", device="cpu")
     assert b.use_sde and b.sde_sample_freq == 8 and tuple(b.policy.log_std.shape) == (64, 2)
-    obs = torch.as_tensor(np.random.default_rng(1).normal(size=(256, a.observation_space.shape[0])), dtype=torch.float32)
+    obs = torch.as_tensor(np.random.default_rng(1).normal(size=(256, a.observation_space.shape[0])),
+                          dtype=torch.float32)
     with torch.no_grad():
         assert torch.allclose(mean_action(a.policy, obs), mean_action(b.policy, obs), atol=1e-6)
         std = b.policy.get_distribution(torch.as_tensor(first)).distribution.stddev

@@ -41,9 +41,9 @@ def steer_bounds(car) -> tuple[float, float]:
     return float(lo[STEER]), float(hi[STEER])
 
 
-def with_bound_term(policy, coef: float, bounds: tuple[float, float], ent_coef: float, outside: list):
+def with_bound_term(policy, coef: float, bounds: tuple[float, float], ent_coef: float):
     """``policy.evaluate_actions`` whose entropy carries the gradient of ``coef * mean(P)`` (see
-    above); appends each batch's share of steering means beyond ``bounds`` to ``outside``."""
+    above)."""
     from racecav.training.dagger import mean_action
 
     evaluate = policy.evaluate_actions
@@ -51,7 +51,6 @@ def with_bound_term(policy, coef: float, bounds: tuple[float, float], ent_coef: 
     def evaluate_with_bound(obs, actions):
         values, log_prob, entropy = evaluate(obs, actions)
         penalty = bound_penalty(mean_action(policy, obs), *bounds)
-        outside.append(float((penalty > 0).float().mean()))
         if entropy is None:  # SB3's entropy of a distribution without a closed form
             entropy = -log_prob
         return values, log_prob, entropy - coef * (penalty - penalty.detach()) / ent_coef
@@ -72,15 +71,12 @@ def bounded_ppo():
 
         def train(self) -> None:
             if self.ent_coef <= 0:
-                raise ValueError("--steer-bound-coef enters PPO's loss through the entropy term: it needs --ent-coef > 0")
-            outside: list[float] = []
-            self.policy.evaluate_actions = with_bound_term(self.policy, self.bound_coef, self.bounds, self.ent_coef,
-                                                           outside)
+                raise ValueError("--steer-bound-coef enters PPO's loss through the entropy term: "
+                                 "it needs --ent-coef > 0")
+            self.policy.evaluate_actions = with_bound_term(self.policy, self.bound_coef, self.bounds, self.ent_coef)
             try:
                 super().train()
             finally:
                 del self.policy.evaluate_actions  # the class's method again
-            # share of the update's samples whose steering mean was beyond the range
-            self.logger.record("train/steer_outside", float(np.mean(outside)) if outside else 0.0)
 
     return SteerBoundedPPO

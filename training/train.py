@@ -525,7 +525,9 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     dst = model.policy.state_dict()
     n_stack = dst["mlp_extractor.policy_net.0.weight"].shape[1] // view.n_rays
     for k, v in src.items():
-        if k in dst and k != "log_std" and (dst[k].shape != v.shape or (k.endswith("net.0.weight") and src_view != view)):
+        if k == "log_std":  # below: its shape differs with gSDE
+            continue
+        if k in dst and (dst[k].shape != v.shape or (k.endswith("net.0.weight") and src_view != view)):
             if k.endswith("net.0.weight") and v.shape[1] % src_view.n_rays == 0:
                 src[k] = torch.as_tensor(map_inputs(v.numpy(), src_view, view, n_stack))
             if src[k].shape != dst[k].shape:
@@ -539,7 +541,8 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     if src["log_std"].shape != dst["log_std"].shape:  # one of the two explores with gSDE
         if dst["log_std"].dim() == 1 and std is None:
             raise ValueError(f"--init-from {path}: a gSDE policy into one without: give its noise with --init-std")
-        src["log_std"] = dst["log_std"] if dst["log_std"].dim() == 2 else torch.full_like(dst["log_std"], float(np.log(std)))
+        src["log_std"] = (dst["log_std"] if dst["log_std"].dim() == 2  # calibrated by calibrate_sde
+                          else torch.full_like(dst["log_std"], float(np.log(std))))
     model.policy.load_state_dict(src, strict=True)
 
 
