@@ -133,3 +133,65 @@ def test_broken_scenario_file_exits_2_naming_the_field(tmp_path):
     out = subprocess.run(procs.racecav_cmd("sim", "--scenario", str(bad)), capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 2 and "ego.speed" in out.stdout + out.stderr
+
+
+def test_policy_stack_restarts_at_a_sim_reset(spawn, session):
+    """A stacked policy (the shipped avoid: 2 scans) answers the first scan of a new episode
+    from a fresh stack, as in training (the first scan repeated), never from the last scan of
+    the previous world: the sim leaves a gap in the stamps at a reset (EPISODE_GAP_S)."""
+    import numpy as np
+
+    from racecav.common.lidar import sanitize
+    from racecav.common.messages import DriveCommand, Scan
+    from racecav.common.policy import ScanStack, load_policy
+    from racecav.services.controller import scan_view
+
+    got = {"scan": [], "cmd": [], "state": []}
+    lock = threading.Lock()
+
+    def keep(kind, cls):
+        def _on(sample):
+            with lock:
+                got[kind].append(decode(sample.payload.to_bytes(), cls))
+        return _on
+
+    subs = [session.declare_subscriber(keys.topic("car0", keys.SCAN), keep("scan", Scan)),
+            session.declare_subscriber(keys.topic("car0", keys.CMD), keep("cmd", DriveCommand)),
+            session.declare_subscriber(keys.topic("car0", keys.STATE), keep("state", VehicleState))]
+    sim = spawn("sim", "--scenario", "conflict-left-to-right", "--mode", "lockstep", "--seed", "1")
+    procs.wait_alive(session, "car0", "sim", proc=sim)
+    ctl = spawn("policy", "--model", "avoid")
+
+    def answered(n):
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with lock:
+                if len({c.scan_seq for c in got["cmd"]}) >= n:
+                    return
+            time.sleep(0.05)
+        raise TimeoutError(f"fewer than {n} commands")
+
+    answered(10)
+    query_message(session, "car0", "sim", "reset", {"seed": 2})
+    answered(15)
+    procs.stop(ctl)
+    procs.stop(sim)
+    for s in subs:
+        s.undeclare()
+    scans = sorted({s.seq: s for s in got["scan"]}.values(), key=lambda s: s.seq)
+    cmds = {c.scan_seq: c for c in got["cmd"]}
+    pos = {s.seq: (s.x, s.y) for s in got["state"]}
+    # the reset: the car is back at the start (the state and the scan of one instant share a seq)
+    k = next(i for i in range(1, len(scans))
+             if np.hypot(*np.subtract(pos[scans[i].seq], pos[scans[i - 1].seq])) > 0.5)
+    first, last = scans[k], scans[k - 1]
+    assert first.seq == last.seq + 1 and first.seq in cmds  # no scan lost: only the stamps tell
+    assert first.stamp_ns - last.stamp_ns > 1.5 * first.scan_time * 1e9
+    pol = load_policy("avoid")
+    idx = scan_view(first, pol.lidar)  # the sim publishes the wide scan, which holds the view
+    fresh, stale = ScanStack(pol.obs_stack), ScanStack(pol.obs_stack)
+    stale(sanitize(last.ranges[idx], pol.lidar))
+    want = pol(fresh(sanitize(first.ranges[idx], pol.lidar)))
+    wrong = pol(stale(sanitize(first.ranges[idx], pol.lidar)))
+    assert np.abs(want - wrong).max() > 1e-3  # the two worlds differ: the check below can fail
+    np.testing.assert_allclose([cmds[first.seq].a_throttle, cmds[first.seq].a_steer], want, atol=1e-4)

@@ -1,22 +1,22 @@
 """PPO that also learns from its rollouts seen in a mirror: ``racecav train overtake --mirror-augment``.
 
-The shipped avoid passes both timings of the crossings from its right, and its own mirror image
-passes both from the left (``racecav train mirror``, docs/training.md): the skill is in the
-network, on one side. Fitting the mirrored actions by regression moved the other evasions
-(row 22), and an actor symmetric by construction had to start from scratch (row 23). Here PPO
-keeps its objective and its clip, and every update also sees each sample of the rollout
-reflected: the scans of each stacked scan reversed, the steering negated, the same reward,
-return and advantage (the reward is symmetric: 5 T^2, the steering-flip penalty, progress along
-the road). The old log-probability of a reflected sample is the policy's own before the update,
-so PPO's ratio starts at 1 and its clip bounds how far one update moves the other side towards
-the reflected experience (the usual symmetry augmentation for PPO, e.g. Mittal et al. 2024,
-"Symmetry considerations for learning task symmetric robot policies").
+Row 16 (the avoid shipped until 2026-12-02) passes both timings of the crossings from its right,
+and its own mirror image passes both from the left (``racecav train mirror``, docs/training.md):
+the skill is in the network, on one side. Fitting the mirrored actions by regression moved the
+other evasions (row 22), and an actor symmetric by construction had to start from scratch (row
+23). Here PPO keeps its objective and its clip, and every update also sees each sample of the
+rollout reflected: the scans of each stacked scan reversed, the steering negated, the same
+reward, return and advantage (the reward is symmetric: 5 T^2, the steering-flip penalty,
+progress along the road). The old log-probability of a reflected sample is the policy's own
+before the update, so PPO's ratio starts at 1 and its clip bounds how far one update moves the
+other side towards the reflected experience (the usual symmetry augmentation for PPO, e.g.
+Mittal et al. 2024, "Symmetry considerations for learning task symmetric robot policies").
 
 The world is only nearly symmetric: the car steers 0.313 rad to the left and 0.263 to the right
 (common/data/cars/slash.toml), so a reflected left turn beyond 0.263 rad is one the car clips,
 and the wide view's rays are reflected to within half a ray spacing (training/mirror.py).
 Each update costs about twice as much (twice the samples per epoch). Measured from the
-lopsided shipped avoid (docs/training.md, row 24): it collapses within 0.5 M samples, the way
+lopsided row 16 (docs/training.md, row 24): it collapses within 0.5 M samples, the way
 from one turn for every car to a turn for each side passing through no turn at all.
 """
 

@@ -1,19 +1,20 @@
 """PPO with a loss on the steering mean beyond the car's range: ``--steer-bound-coef C``.
 
 The car clips the steering action to [delta_min, delta_max] (common/vehicle.py). Near a crossing
-car the shipped avoid's steering mean is often beyond that range (a one-off count in issue 15's
-notes): there its exploration noise (std 0.08, its log_std) and small changes of its mean do not
-change what the car does, so PPO gets no signal that a smaller or an opposite turn would pass. The loss
-``C * mean(relu(mu - hi)^2 + relu(lo - mu)^2)`` on the steering mean ``mu`` pulls it back to the
-edge of the range, where the deterministic action, and so the car, is the same, but the sampled
-actions do vary the turn (the "bounds loss" of rl_games' PPO, there on every action dimension).
+car the steering mean of row 16 (the avoid shipped until 2026-12-02) is often beyond that range
+(a one-off count in issue 15's notes): there its exploration noise (std 0.08, its log_std) and
+small changes of its mean do not change what the car does, so PPO gets no signal that a smaller
+or an opposite turn would pass. The loss ``C * mean(relu(mu - hi)^2 + relu(lo - mu)^2)`` on the
+steering mean ``mu`` pulls it back to the edge of the range, where the deterministic action, and
+so the car, is the same, but the sampled actions do vary the turn (the "bounds loss" of
+rl_games' PPO, there on every action dimension).
 
 SB3's PPO has no hook for an extra loss term. The term enters through the entropy that the policy
 returns to PPO's loss (``ent_coef * -mean(entropy)``): ``entropy - (P - P.detach()) / ent_coef``
 has the entropy's value, so the logged entropy is unchanged, and adds exactly the gradient of
 ``mean(P)`` to the loss. Hence ``ent_coef > 0`` is required.
 
-Measured (docs/training.md, row 28): from the shipped avoid the term takes the mean back into the
+Measured (docs/training.md, row 28): from row 16 the term takes the mean back into the
 range, but the paper-timed left-to-right falls to 0-17 % and the conflict-timed head-on to 39-59 %;
 rejected.
 """

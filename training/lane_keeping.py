@@ -12,9 +12,9 @@ free, so the cheapest way to survive both timings is to keep the lane and evade 
 throttle only) steps an exact copy of the world, synchronised actors included. The term exists
 in scenario episodes only (traffic episodes get no term); the policy never sees it, so nothing changes on the car.
 
-Measured (row 19 of the ablation, docs/training.md): from the shipped avoid it does not teach
-the late evasion within 11 M samples (its checkpoints score below the shipped one), and the
-look-ahead cuts the training throughput by about four. The shipped avoid does not use it.
+Measured (row 19 of the ablation, docs/training.md): from row 16's avoid it does not teach
+the late evasion within 11 M samples (its checkpoints score below row 16's), and the
+look-ahead cuts the training throughput by about four. No shipped policy uses it.
 """
 
 from __future__ import annotations

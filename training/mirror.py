@@ -1,17 +1,17 @@
 """A policy's mirror image, and the mirror teacher of ``racecav train dagger --expert mirror``.
 
 The intersection families come in mirror pairs (a car crossing from the left is a car crossing
-from the right seen in a mirror: common/data/suites/*.toml draw both from the same ranges), yet a
-trained policy is rarely symmetric. The shipped avoid passes 99 % of the suites' crossings from
-the right and 75-81 % of those from the left in the fast world, while the same network applied
-to the mirrored scans (steering negated) passes 96-99 % of those from the left
-(``racecav train mirror``, training/checkpoints/mirror-avoid.md). The teacher labels each step
-of a world whose scenario is of a ``families`` family (e.g. cross-left), once its car is near on
-the ego's left, with that mirrored action, and every other step with the policy's own action, so
-that DAgger (training/dagger.py) would fit one network to both: its skill on the right, reflected
-onto the left, and everything else as it was. The teacher reads which family a world runs and
-where its cars are (privileged, training only); the fitted policy sees only its scans. Measured
-(docs/training.md, row 22): the fit does not keep everything else as it was.
+from the right seen in a mirror: common/data/suites/*.toml draw both from the same ranges), yet
+a trained policy is rarely symmetric. Row 16 (the avoid shipped until 2026-12-02) passes 99 % of
+the suites' crossings from the right and 75-81 % of those from the left in the fast world, while
+the same network applied to the mirrored scans (steering negated) passes 96-99 % of those from
+the left (``racecav train mirror``, training/checkpoints/mirror-avoid.md). The teacher labels
+each step of a world whose scenario is of a ``families`` family (e.g. cross-left), once its car
+is near on the ego's left, with that mirrored action, and every other step with the policy's own
+action, so that DAgger (training/dagger.py) would fit one network to both: its skill on the
+right, reflected onto the left, and everything else as it was. The teacher reads which family a
+world runs and where its cars are (privileged, training only); the fitted policy sees only its
+scans. Measured (docs/training.md, row 22): the fit does not keep everything else as it was.
 
 Mirroring the scan reverses the ray order of each stacked scan. The wide view's rays are not
 exactly symmetric about the heading (common/lidar.VIEWS: -168.5 to +167.5 paper increments), so

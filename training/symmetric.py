@@ -1,11 +1,11 @@
 """A mirror-symmetric actor: ``racecav train overtake ... --mirror-symmetric``.
 
 The intersection families come in mirror pairs, yet a trained policy is rarely symmetric: the
-shipped avoid passes the crossings from its right in both timings and fails half of the
-paper-timed ones from its left, while its own mirror image passes those (``racecav train
-mirror``, training/checkpoints/mirror-avoid.md). An actor that is symmetric by construction,
-actor(mirrored scans) = mirrored actor(scans) (steering negated), learns each side from both
-sides' episodes and cannot trade one side against the other.
+avoid shipped until 2026-12-02 (row 16) passes the crossings from its right in both timings and
+fails half of the paper-timed ones from its left, while its own mirror image passes those
+(``racecav train mirror``, training/checkpoints/mirror-avoid.md). An actor that is symmetric by
+construction, actor(mirrored scans) = mirrored actor(scans) (steering negated), learns each side
+from both sides' episodes and cannot trade one side against the other.
 
 The actor stays SB3's MlpPolicy network, 2 x 64 tanh, so the export, the numpy path, the fused
 kernel and their equality tests are unchanged; only its weights are tied (the usual

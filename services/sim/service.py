@@ -24,6 +24,9 @@ applies to the scan it answers. A brake (neutral or the supervisor's) sets the w
 target to 0.
 
 Stamps are sim time (ns, monotonic across episodes); scan seq is monotonic across episodes.
+Episodes are EPISODE_GAP_S apart in the stamps: a consumer that keeps history (the policy's scan
+stack, which restarts on a gap of 1.5 scan periods) sees a reset as it sees a lost sensor,
+instead of stacking the last scan of one world with the first of the next.
 Queryables: racecav/<car>/sim/status, .../sim/reset (JSON {"seed": int?, "heading": str?}) and
 .../sim/scenario (JSON {"name": NAME|FILE, "seed": int?}; no payload: current and available).
 """
@@ -92,6 +95,8 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
 
 
 MAX_SEED = 2**32 - 1
+EPISODE_GAP_S = 1.0
+"""Sim time between the last stamp of an episode and the first of the next (module doc)."""
 """Seeds from queries are within [0, MAX_SEED] (numpy's legacy seed range): larger ones broke
 every status reply until the next reset (the status carries the seed)."""
 
@@ -161,7 +166,7 @@ class SimService(Service):
 
     def _new_episode(self, seed: int, heading: str | None = None) -> None:
         if self.episode >= 0:
-            self.offset_ns += int(round(self.world.t * 1e9)) + int(self.car_params.control_period_s * 1e9)
+            self.offset_ns += int(round((self.world.t + EPISODE_GAP_S) * 1e9))
         opts = {"heading": heading} if heading and self.world.scenario.traffic else {}
         self.world.reset(seed=seed, options=opts)
         self.episode += 1
