@@ -1,7 +1,7 @@
 """A mirror-symmetric actor: ``racecav train overtake ... --mirror-symmetric``.
 
 The intersection families come in mirror pairs, yet a trained policy is rarely symmetric: the
-avoid shipped until 2026-12-02 (row 16) passes the crossings from its right in both timings and
+avoid shipped on 2026-12-01 (row 16) passes the crossings from its right in both timings and
 fails half of the paper-timed ones from its left, while its own mirror image passes those
 (``racecav train mirror``, training/checkpoints/mirror-avoid.md). An actor that is symmetric by
 construction, actor(mirrored scans) = mirrored actor(scans) (steering negated), learns each side
