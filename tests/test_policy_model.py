@@ -8,12 +8,14 @@ import json
 import pickle
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from racecav.common.policy import MODELS_DIR, SHIPPED, NumpyPolicy, export_policy, load_policy
+from racecav.common.policy import (MODELS_DIR, SHIPPED, NumpyPolicy, export_policy, load_policy,
+                                   policy_arrays_from_sb3)
 from tests.recorded import recorded_obs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,6 +100,15 @@ def test_export_roundtrip_with_normalisation(tmp_path):
     assert pol.metadata["k"] == 1 and pol.metadata["normalization"]["kind"].startswith("VecNormalize")
     # by path without suffix and with .json resolve to the same weights
     np.testing.assert_array_equal(load_policy(tmp_path / "p")(OBS[:3]), load_policy(tmp_path / "p.json")(OBS[:3]))
+    # a re-export writes the same bytes (np.savez: fixed zip timestamps): the stored evaluation
+    # cells keyed by its sha256 (evaluation/results.py) survive re-shipping a checkpoint
+    first = path.read_bytes()
+    time.sleep(2.1)  # zip timestamps have a 2 s resolution
+    export_policy(model, tmp_path / "p", {"k": 1}, obs_rms=venv.obs_rms, clip_obs=venv.clip_obs,
+                  epsilon=venv.epsilon)
+    assert path.read_bytes() == first
+    norm = {"obs_mean", "obs_var", "obs_clip", "obs_eps"}
+    assert set(np.load(path).files) == set(policy_arrays_from_sb3(model)) | norm
 
 
 def test_actions_are_clipped():
