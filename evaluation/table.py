@@ -71,6 +71,9 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     if not args.controllers:  # the default list: a policy not shipped yet is left out, not an error
         names = [n for n in names if n in CONTROLLERS and not missing(CONTROLLERS[n])]
     sections = [x.strip() for x in (args.sections or ",".join(SECTIONS)).split(",") if x.strip()]
+    if getattr(args, "jobs", 1) < 1:
+        print("racecav eval --table: --jobs must be >= 1", file=sys.stderr)
+        return 2
     if set(sections) - set(SECTIONS):
         print(f"racecav eval --table: unknown section(s) {sorted(set(sections) - set(SECTIONS))}; known: {SECTIONS}",
               file=sys.stderr)
@@ -119,6 +122,12 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     wall0 = time.monotonic()
     error = None
     total = len(runs) * (len(scen) * trials + len(suite_cells_) * k_suite)
+    jobs = min(getattr(args, "jobs", 1), len(names))
+    if jobs > 1:  # the cells are computed by child tables; the pass below reads them and writes the doc
+        rc = _run_jobs(args, names, jobs, trials, sections, out, total)
+        if rc != 0:
+            return rc
+        args.resume = True
     bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="table", dynamic_ncols=True,
                                                  mininterval=1.0)
     try:
@@ -173,6 +182,58 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print(f"PARTIAL table: {error}; continue with the same command and --resume", file=sys.stderr)
         return 130 if isinstance(error, KeyboardInterrupt) or type(error).__name__ == "Interrupted" else 1
     return 0
+
+
+def _run_jobs(args, names: list[str], jobs: int, trials: int, sections: list[str], out: Path, total: int) -> int:
+    """``--jobs N``: the controllers dealt round robin to N child ``racecav eval --table`` processes
+    (each with its own router, sim and controller: about one core each), writing the same cells
+    as one process would. Returns 0 once every child finished its cells; otherwise the first
+    failing child's code (its output: OUT/table/logs/job-K.log)."""
+    import os
+
+    from tqdm import tqdm
+
+    from racecav.common import procs
+
+    base = ["eval", "--table", "--trials", str(trials), "--trials-per-scenario", str(args.trials_per_scenario),
+            "--sections", ",".join(sections), "--mode", args.mode, "--real-time-factor", str(args.real_time_factor),
+            "--out-dir", str(args.out_dir), "--safety", getattr(args, "safety", "off"), "--no-progress"]
+    for flag, value in (("--seed", args.seed), ("--suite", args.suite), ("--config", getattr(args, "config", None))):
+        if value is not None:
+            base += [flag, str(value)]
+    if args.resume:
+        base.append("--resume")
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    groups = [names[k::jobs] for k in range(jobs)]
+    children = [procs.start(base + ["--controllers", ",".join(g), "--doc", str(out / "logs" / f"job-{k}.md")],
+                            dict(os.environ), out / "logs" / f"job-{k}.log") for k, g in enumerate(groups)]
+    print(f"racecav eval --table --jobs {jobs}: " + "; ".join(
+        f"job {k}: {','.join(g)} (log {out / 'logs' / f'job-{k}.log'})" for k, g in enumerate(groups)))
+
+    def done() -> int:  # trials on disk (one JSONL line each)
+        return sum(1 for f in out.rglob("*.jsonl") for _ in open(f, "rb"))
+
+    bar = None if args.no_progress else tqdm(total=total, initial=min(done(), total), unit="trial",
+                                             desc=f"table ({jobs} jobs)", dynamic_ncols=True)
+    try:
+        while any(c.poll() is None for c in children):
+            time.sleep(2.0)
+            if bar is not None:
+                bar.n = min(done(), total)
+                bar.refresh()
+    except BaseException as e:  # interrupted: the children stop too (their cells stay resumable)
+        for c in children:
+            procs.stop(c)
+        print(f"PARTIAL table: {type(e).__name__}; continue with the same command and --resume", file=sys.stderr)
+        return 130
+    finally:
+        if bar is not None:
+            bar.close()
+    failed = [(k, c.returncode) for k, c in enumerate(children) if c.returncode != 0]
+    for k, rc in failed:
+        print(f"racecav eval --table: job {k} ({','.join(groups[k])}) exited with code {rc}; see "
+              f"{out / 'logs' / f'job-{k}.log'}; continue with the same command and --resume", file=sys.stderr)
+    return failed[0][1] if failed else 0
 
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
@@ -292,7 +353,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     lines += _conflict_sections(results, names, trials, seeds, {k: v for k, v in (suite or {}).items() if k in names},
                                 img, doc)
     lines += _safety_section(results, names, trials, suite or {})
-    lines += ["## Reproduce", "", f"```sh\n{cmd}            # add --resume to continue an interrupted run\n"
+    lines += ["## Reproduce", "", f"```sh\n{cmd}            # --jobs N: N processes; --resume: continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "
               f"{args.out_dir / 'table'}/.", ""]

@@ -227,6 +227,31 @@ def test_table_safety_both_runs_every_cell_without_and_with_the_supervisor(tmp_p
     assert r.returncode == 2 and "--table" in r.stderr
 
 
+def test_table_jobs_split_the_controllers_over_processes(tmp_path):
+    """--jobs 2: two child tables (one controller each) fill the cells, then the document is
+    written from them; a cell equals the one a single process computes (lockstep: same seeds,
+    same outcomes; the measured compute time it charges moves the car by micrometres)."""
+    doc = tmp_path / "results.md"
+    r = _eval(tmp_path / "two", "--table", "--controllers", "scripted,full-throttle", "--sections", "table1",
+              "--trials", "2", "--jobs", "2", "--doc", str(doc), timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "job 0: scripted" in r.stdout and "job 1: full-throttle" in r.stdout
+    for k in (0, 1):
+        assert (tmp_path / "two" / "table" / "logs" / f"job-{k}.log").is_file()
+    text = doc.read_text()
+    assert "| no evasion (straight 1 m/s, scripted) |" in text and "| no evasion (straight, full throttle" in text
+    r = _eval(tmp_path / "one", "--table", "--controllers", "full-throttle", "--sections", "table1", "--trials", "2",
+              "--doc", str(tmp_path / "one.md"), timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    for sc in ("right-to-left", "head-to-head", "left-to-right"):
+        two, one = (validate_run(tmp_path / d / "table" / f"full-throttle-{sc}.json") for d in ("two", "one"))
+        assert two.complete and [(t.seed, t.success, t.steps) for t in two.trials] == \
+            [(t.seed, t.success, t.steps) for t in one.trials]
+        assert np.allclose([t.progress_m for t in two.trials], [t.progress_m for t in one.trials], atol=1e-3)
+    r = _eval(tmp_path, "--table", "--controllers", "scripted", "--jobs", "0", "--doc", str(doc))
+    assert r.returncode == 2 and "--jobs" in r.stderr
+
+
 def test_demo_runs_the_shipped_avoid_policy(tmp_path):
     if missing(CONTROLLERS["drl-avoid"]):
         r = subprocess.run(procs.racecav_cmd("demo", "--out-dir", str(tmp_path)), capture_output=True, text=True,
