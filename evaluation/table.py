@@ -211,7 +211,11 @@ def _run_jobs(args, names: list[str], jobs: int, trials: int, sections: list[str
         f"job {k}: {','.join(g)} (log {out / 'logs' / f'job-{k}.log'})" for k, g in enumerate(groups)))
 
     def done() -> int:  # trials on disk (one JSONL line each)
-        return sum(1 for f in out.rglob("*.jsonl") for _ in open(f, "rb"))
+        n = 0
+        for path in out.rglob("*.jsonl"):
+            with open(path, "rb") as f:
+                n += sum(1 for _ in f)
+        return n
 
     bar = None if args.no_progress else tqdm(total=total, initial=min(done(), total), unit="trial",
                                              desc=f"table ({jobs} jobs)", dynamic_ncols=True)

@@ -188,10 +188,13 @@ def test_policy_stack_restarts_at_a_sim_reset(spawn, session):
     assert first.seq == last.seq + 1 and first.seq in cmds  # no scan lost: only the stamps tell
     assert first.stamp_ns - last.stamp_ns > 1.5 * first.scan_time * 1e9
     pol = load_policy("avoid")
-    idx = scan_view(first, pol.lidar)  # the sim publishes the wide scan, which holds the view
+    idx = scan_view(first, pol.lidar)  # the policy's view within the published scan (None: all of it)
+
+    def obs(scan):
+        return sanitize(scan.ranges if idx is None else scan.ranges[idx], pol.lidar)
+
     fresh, stale = ScanStack(pol.obs_stack), ScanStack(pol.obs_stack)
-    stale(sanitize(last.ranges[idx], pol.lidar))
-    want = pol(fresh(sanitize(first.ranges[idx], pol.lidar)))
-    wrong = pol(stale(sanitize(first.ranges[idx], pol.lidar)))
+    stale(obs(last))
+    want, wrong = pol(fresh(obs(first))), pol(stale(obs(first)))
     assert np.abs(want - wrong).max() > 1e-3  # the two worlds differ: the check below can fail
     np.testing.assert_allclose([cmds[first.seq].a_throttle, cmds[first.seq].a_steer], want, atol=1e-4)

@@ -95,10 +95,10 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
 
 
 MAX_SEED = 2**32 - 1
-EPISODE_GAP_S = 1.0
-"""Sim time between the last stamp of an episode and the first of the next (module doc)."""
 """Seeds from queries are within [0, MAX_SEED] (numpy's legacy seed range): larger ones broke
 every status reply until the next reset (the status carries the seed)."""
+EPISODE_GAP_S = 1.0
+"""Sim time (s) between the last stamp of an episode and the first of the next (module doc)."""
 
 
 def query_object(payload: bytes, what: str, fields: set[str]) -> dict:
