@@ -153,6 +153,8 @@ class RunResult(_Strict):
     stopped_reason: str = ""
     """Why a partial run stopped (interrupt, error text)."""
     wall_s: float
+    """Wall time of the invocation that wrote this file, start-up included; a resumed run counts
+    only its own part (the trials' wall_s add up to all of it)."""
     summary: Summary
     sim_counters: dict[str, int | float | str | bool | None] = {}
     """The sim service's status at the end (lockstep_republish, stale_commands, watchdog_brakes,

@@ -167,7 +167,9 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     if suite_cells_:
         from racecav.evaluation.suite_eval import suite_json
 
-        suite = {n: suite_json(suite_name, "test", n, k_suite, args.seed or 0, suite_cells_, r, 0.0, None)
+        # wall: the trials' own, summed (cells may come from several resumed invocations)
+        suite = {n: suite_json(suite_name, "test", n, k_suite, args.seed or 0, suite_cells_, r,
+                               sum(t.wall_s for c in r.values() for t in c.trials), None)
                  for n, r in suite_results.items()}
         for n, doc_ in suite.items():
             (out / f"suite-{suite_name}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
