@@ -41,6 +41,16 @@ WALLS_PER_BODY = 16    # PyBullet's limit of child shapes per createCollisionSha
 TILT_LIMIT = 1.0       # rad of roll or pitch that counts as a crash (the car fell over)
 
 
+class _DirectClient(BulletClient):
+    """A headless BulletClient. BulletClient passes options="" to connect(), for which pybullet
+    prints "argv[0]=" to stdout: once per world, noise in every log. Connect without options."""
+
+    def __init__(self):  # the attributes BulletClient.__init__ sets
+        self._shapes = {}
+        self._pid = os.getpid()
+        self._client = p.connect(p.DIRECT)
+
+
 def car_urdf(car: CarParams, rgba: tuple[float, float, float, float] = (0.1, 0.1, 0.1, 1.0)) -> str:
     """URDF of a car from its parameters: a solid body box (the chassis AND what lidars see),
     four wheels (continuous joints; spheres for collision: Bullet's cylinder-plane contact
@@ -162,7 +172,7 @@ class BulletWorld:
             with open(path, "w") as f:
                 f.write(car_urdf(self.car, rgba))
             self._urdf[name] = path
-        self.bc = BulletClient(connection_mode=p.DIRECT)
+        self.bc = _DirectClient()
         self.t = 0.0
         self.steps = 0
         self.trial: Trial | None = None

@@ -215,3 +215,13 @@ def test_a_policy_plugs_in_as_traffic_driver():
         moved = np.linalg.norm(w.obstacles()[0, :, :2] - before, axis=1)
     assert seen[0].shape == (15, 170) and np.isfinite(seen[0]).all() and seen[0].max() <= 12.0
     assert np.all(moved > 0.15)  # 1 s from rest at throttle 0.6
+
+
+def test_building_a_world_prints_nothing(capfd):
+    # pybullet prints "argv[0]=" from C for any connect() options string (BulletClient passes "");
+    # flush C's stdio buffer so a print would land in the captured file descriptor
+    import ctypes
+
+    with BulletWorld("head-to-head"):
+        ctypes.CDLL(None).fflush(None)
+    assert "argv[0]" not in capfd.readouterr().out
