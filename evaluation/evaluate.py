@@ -65,8 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"), help="--table: the document written")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--jobs", type=int, default=1,
-                   help="--table: split the controllers over N processes (each about one core: its own "
-                        "router, sim and controller), then write the document from their cells")
+                   help="--table: run the (controller, safety) rows in a pool of N processes (each about "
+                        "one core: its own router, sim and controller), the rows with most trials left first, "
+                        "then write the document from their cells")
     p.add_argument("--safety", choices=["on", "off", "both"], default="off",
                    help="on: also run racecav safety (the emergency-brake supervisor, a brake input of the "
                         "sim's mux); results go to *-safety.json, the controller is named CONTROLLER+safety; "

@@ -122,9 +122,10 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     wall0 = time.monotonic()
     error = None
     total = len(runs) * (len(scen) * trials + len(suite_cells_) * k_suite)
-    jobs = min(getattr(args, "jobs", 1), len(names))
+    jobs = min(getattr(args, "jobs", 1), len(runs))
     if jobs > 1:  # the cells are computed by child tables; the pass below reads them and writes the doc
-        rc = _run_jobs(args, names, jobs, trials, sections, out, total)
+        suite_dir = out / f"suite-{suite_name}" if suite_cells_ else None
+        rc = _run_jobs(args, runs, jobs, trials, sections, scen, suite_dir, total // len(runs), out, total)
         if rc != 0:
             return rc
         args.resume = True
@@ -139,8 +140,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
             try:
                 with Harness(cfg, ctrl, args.mode, first, out / "logs" / key, args.real_time_factor, safety=on) as h:
                     for sc in scen:
-                        stem = (f"{name}-{sc}" + ("" if args.mode == "lockstep" else f"-{args.mode}")
-                                + ("-safety" if on else ""))
+                        stem = _stem(name, sc, args.mode, on)
                         res, error = run_trials(h, sc, SCENARIOS_DIR / f"{sc}.toml", trials, seeds[sc],
                                                 out / f"{stem}.jsonl", args.resume, bar=bar)
                         results[(key, sc)] = res
@@ -186,11 +186,26 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
-def _run_jobs(args, names: list[str], jobs: int, trials: int, sections: list[str], out: Path, total: int) -> int:
-    """``--jobs N``: the controllers dealt round robin to N child ``racecav eval --table`` processes
-    (each with its own router, sim and controller: about one core each), writing the same cells
-    as one process would. Returns 0 once every child finished its cells; otherwise the first
-    failing child's code (its output: OUT/table/logs/job-K.log)."""
+def _stem(name: str, sc: str, mode: str, on: bool) -> str:
+    """A cell's file stem in OUT/table (its .json and resumable .jsonl)."""
+    return f"{name}-{sc}" + ("" if mode == "lockstep" else f"-{mode}") + ("-safety" if on else "")
+
+
+def _lines(path: Path) -> int:
+    """Trials on disk in a JSONL file (one line each); 0 if there is none."""
+    if not path.is_file():
+        return 0
+    with open(path, "rb") as f:
+        return sum(1 for _ in f)
+
+
+def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sections: list[str], scen: list[str],
+              suite_dir: Path | None, per_run: int, out: Path, total: int) -> int:
+    """``--jobs N``: a pool of N child ``racecav eval --table`` processes (each with its own router,
+    sim and controller: about one core each), one per (controller, safety) row, the rows with the
+    most trials left first, so that the pool ends on short ones and no core idles for long. They
+    write the same cells one process would. Returns 0 once every child finished its cells;
+    otherwise the first failing child's code (its output: OUT/table/logs/job-K.log)."""
     import os
 
     from tqdm import tqdm
@@ -199,47 +214,61 @@ def _run_jobs(args, names: list[str], jobs: int, trials: int, sections: list[str
 
     base = ["eval", "--table", "--trials", str(trials), "--trials-per-scenario", str(args.trials_per_scenario),
             "--sections", ",".join(sections), "--mode", args.mode, "--real-time-factor", str(args.real_time_factor),
-            "--out-dir", str(args.out_dir), "--safety", getattr(args, "safety", "off"), "--no-progress"]
+            "--out-dir", str(args.out_dir), "--no-progress"]
     for flag, value in (("--seed", args.seed), ("--suite", args.suite), ("--config", getattr(args, "config", None))):
         if value is not None:
             base += [flag, str(value)]
     if args.resume:
         base.append("--resume")
     (out / "logs").mkdir(parents=True, exist_ok=True)
-    groups = [names[k::jobs] for k in range(jobs)]
-    children = [procs.start(base + ["--controllers", ",".join(g), "--doc", str(out / "logs" / f"job-{k}.md")],
-                            dict(os.environ), out / "logs" / f"job-{k}.log") for k, g in enumerate(groups)]
-    print(f"racecav eval --table --jobs {jobs}: " + "; ".join(
-        f"job {k}: {','.join(g)} (log {out / 'logs' / f'job-{k}.log'})" for k, g in enumerate(groups)))
-
-    def done() -> int:  # trials on disk (one JSONL line each)
-        n = 0
-        for path in out.rglob("*.jsonl"):
-            with open(path, "rb") as f:
-                n += sum(1 for _ in f)
-        return n
-
-    bar = None if args.no_progress else tqdm(total=total, initial=min(done(), total), unit="trial",
-                                             desc=f"table ({jobs} jobs)", dynamic_ncols=True)
+    rows = []  # (trials left, controller, safety on, row key)
+    for name, on in runs:
+        key = name + ("+safety" if on else "")
+        done = 0
+        if args.resume:  # else every cell starts over
+            done = sum(_lines(out / f"{_stem(name, sc, args.mode, on)}.jsonl") for sc in scen)
+            if suite_dir is not None:
+                done += sum(_lines(p) for p in (suite_dir / key).glob("*.jsonl"))
+        if per_run - done > 0:
+            rows.append((per_run - done, name, on, key))
+    rows.sort(key=lambda r: -r[0])  # stable: equal rows keep the --controllers order
+    pending = list(enumerate(rows))
+    running: dict[int, object] = {}
+    failed: list[tuple[int, str, int]] = []
+    bar = None if args.no_progress else tqdm(total=total, initial=min(sum(_lines(p) for p in out.rglob("*.jsonl")),
+                                                                       total),
+                                             unit="trial", desc=f"table ({jobs} jobs)", dynamic_ncols=True)
     try:
-        while any(c.poll() is None for c in children):
-            time.sleep(2.0)
+        while pending or running:
+            while pending and len(running) < jobs:
+                k, (left, name, on, key) = pending.pop(0)
+                log_path = out / "logs" / f"job-{k}.log"
+                running[k] = procs.start(base + ["--safety", "on" if on else "off", "--controllers", name,
+                                                 "--doc", str(out / "logs" / f"job-{k}.md")],
+                                         dict(os.environ), log_path)
+                print(f"racecav eval --table --jobs {jobs}: job {k}: {key}, {left} trials (log {log_path})",
+                      flush=True)
+            time.sleep(1.0)
+            for k, c in list(running.items()):
+                if c.poll() is not None:
+                    del running[k]
+                    if c.returncode != 0:
+                        failed.append((k, rows[k][3], c.returncode))
             if bar is not None:
-                bar.n = min(done(), total)
+                bar.n = min(sum(_lines(p) for p in out.rglob("*.jsonl")), total)
                 bar.refresh()
     except BaseException as e:  # interrupted: the children stop too (their cells stay resumable)
-        for c in children:
+        for c in running.values():
             procs.stop(c)
         print(f"PARTIAL table: {type(e).__name__}; continue with the same command and --resume", file=sys.stderr)
         return 130
     finally:
         if bar is not None:
             bar.close()
-    failed = [(k, c.returncode) for k, c in enumerate(children) if c.returncode != 0]
-    for k, rc in failed:
-        print(f"racecav eval --table: job {k} ({','.join(groups[k])}) exited with code {rc}; see "
+    for k, key, rc in failed:
+        print(f"racecav eval --table: job {k} ({key}) exited with code {rc}; see "
               f"{out / 'logs' / f'job-{k}.log'}; continue with the same command and --resume", file=sys.stderr)
-    return failed[0][1] if failed else 0
+    return failed[0][2] if failed else 0
 
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,

@@ -228,7 +228,7 @@ def test_table_safety_both_runs_every_cell_without_and_with_the_supervisor(tmp_p
 
 
 def test_table_jobs_split_the_controllers_over_processes(tmp_path):
-    """--jobs 2: two child tables (one controller each) fill the cells, then the document is
+    """--jobs 2: two child tables (one controller row each) fill the cells, then the document is
     written from them; a cell equals the one a single process computes (lockstep: same seeds,
     same outcomes; the measured compute time it charges moves the car by micrometres)."""
     doc = tmp_path / "results.md"
@@ -248,6 +248,13 @@ def test_table_jobs_split_the_controllers_over_processes(tmp_path):
         assert two.complete and [(t.seed, t.success, t.steps) for t in two.trials] == \
             [(t.seed, t.success, t.steps) for t in one.trials]
         assert np.allclose([t.progress_m for t in two.trials], [t.progress_m for t in one.trials], atol=1e-3)
+    # resumed with the supervisor rows added: only the rows with trials left get a process
+    r = _eval(tmp_path / "two", "--table", "--controllers", "scripted,full-throttle", "--sections", "table1",
+              "--trials", "2", "--jobs", "2", "--safety", "both", "--resume", "--doc", str(doc), timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "job 0: scripted+safety, 6 trials" in r.stdout and "job 1: full-throttle+safety, 6 trials" in r.stdout
+    assert "job 2:" not in r.stdout, r.stdout
+    assert "## Emergency-brake supervisor on/off" in doc.read_text()  # written from both rows of each
     r = _eval(tmp_path, "--table", "--controllers", "scripted", "--jobs", "0", "--doc", str(doc))
     assert r.returncode == 2 and "--jobs" in r.stderr
 
