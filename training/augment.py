@@ -1,6 +1,6 @@
 """PPO that also learns from its rollouts seen in a mirror: ``racecav train overtake --mirror-augment``.
 
-Row 16 (shipped as avoid on 2026-12-01) passes both timings of the crossings from its right,
+Row 16 (shipped as avoid 2026-12-01 to 02) passes both timings of the crossings from its right,
 and its own mirror image passes both from the left (``racecav train mirror``, docs/training.md):
 the skill is in the network, on one side. Fitting the mirrored actions by regression moved the
 other evasions (row 22), and an actor symmetric by construction had to start from scratch (row

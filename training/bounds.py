@@ -1,7 +1,7 @@
 """PPO with a loss on the steering mean beyond the car's range: ``--steer-bound-coef C``.
 
 The car clips the steering action to [delta_min, delta_max] (common/vehicle.py). Near a crossing
-car the steering mean of row 16 (shipped as avoid on 2026-12-01) is often beyond that range
+car the steering mean of row 16 (shipped as avoid 2026-12-01 to 02) is often beyond that range
 (a one-off count in issue 15's notes): there its exploration noise (std 0.08, its log_std) and
 small changes of its mean do not change what the car does, so PPO gets no signal that a smaller
 or an opposite turn would pass. The loss ``C * mean(relu(mu - hi)^2 + relu(lo - mu)^2)`` on the

@@ -1,6 +1,6 @@
 """A reward term for evading with a crossing car's flow: ``racecav train overtake ... --flow-reward W``.
 
-Row 16 (shipped as avoid on 2026-12-01) turns left at the intersection whatever the side the
+Row 16 (shipped as avoid 2026-12-01 to 02) turns left at the intersection whatever the side the
 car crosses from (docs/training.md, the ablation's row 16). For a car from the right, moving to
 the ego's left, that turn runs ahead of the car in its own direction of travel and passes both
 timings (paper right-to-left 100 %, conflict-timed 99 %, selection seeds); for a car from the

@@ -2,7 +2,7 @@
 
 The intersection families come in mirror pairs (a car crossing from the left is a car crossing
 from the right seen in a mirror: common/data/suites/*.toml draw both from the same ranges), yet
-a trained policy is rarely symmetric. Row 16 (shipped as avoid on 2026-12-01) passes 99 % of
+a trained policy is rarely symmetric. Row 16 (shipped as avoid 2026-12-01 to 02) passes 99 % of
 the suites' crossings from the right and 75-81 % of those from the left in the fast world, while
 the same network applied to the mirrored scans (steering negated) passes 96-99 % of those from
 the left (``racecav train mirror``, training/checkpoints/mirror-avoid.md). The teacher labels
