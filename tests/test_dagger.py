@@ -18,6 +18,7 @@ from racecav.common.scenario import load_scenario, scenario_names
 from racecav.sim.fast_world import FastWorld
 from racecav.training.dagger import action_bounds, imitation_loss, mean_action
 from racecav.training.expert import Expert
+from tests.checkpoints_support import ROW16
 
 CONFLICT = [n for n in scenario_names() if load_scenario(n).conflict_timed]
 
@@ -70,7 +71,7 @@ def test_dagger_run_resumes_and_the_selection_loads_its_checkpoints(tmp_path, ca
              "--grad-steps", "3", "--batch-size", "32", "--world", "figure8", "--heading", "reversed",
              "--n-obstacles", "4", "--driver", "centerline", "--scenarios", "common/data/scenarios/conflict-head-to-head.toml",
              "--scenario-share", "0.5", "--obs-stack", "2", "--lidar", "wide",
-             "--init-from", "common/data/policies/avoid.zip", "--expert-horizon-s", "1.0"]
+             "--init-from", ROW16, "--expert-horizon-s", "1.0"]
     assert main(base + flags + ["--steps", "128"]) == 0  # in-process: the torch import is paid once
     assert json.loads((run / "latest.json").read_text())["timesteps"] == 128
     assert main(base + ["--resume", "--steps", "192"]) == 0
@@ -123,7 +124,7 @@ def test_ppo_imitation_term_fits_the_planner_and_resumes(tmp_path):
              "--checkpoint-every", "64", "--world", "figure8", "--heading", "reversed", "--n-obstacles", "4",
              "--driver", "centerline", "--scenarios", "common/data/scenarios/conflict-left-to-right.toml",
              "--scenario-share", "0.5", "--obs-stack", "2", "--lidar", "wide", "--init-from",
-             "common/data/policies/avoid.zip", "--bc-coef", "1", "--bc-label-steps", "2", "--bc-grad-steps", "3",
+             ROW16, "--bc-coef", "1", "--bc-label-steps", "2", "--bc-grad-steps", "3",
              "--expert-horizon-s", "1.0"]
     assert main(base + flags + ["--steps", "128"]) == 0
     assert main(base + ["--resume", "--steps", "256"]) == 0

@@ -12,6 +12,7 @@ from racecav.common.policy import load_policy
 from racecav.common.scenario import SCENARIOS_DIR
 from racecav.training.mirror import MirrorTeacher, mirror_action, mirror_scans
 from racecav.training.vec_env import FastVecEnv
+from tests.checkpoints_support import ROW16
 
 
 def test_mirror_reverses_each_stacked_scan_and_negates_the_steering():
@@ -70,10 +71,6 @@ def test_teacher_names_a_family_the_scenarios_lack(crossings):
     env.close()
 
 
-# row 16 at 4 M (committed), the policy row 22 imitated its mirror image from (a plain-noise policy)
-R16 = "training/checkpoints/avoid-papertimed-lowlr/checkpoints/step_004005888.zip"
-
-
 def test_dagger_with_the_mirror_teacher_runs_and_refuses_a_wrong_family(tmp_path, crossings, capsys):
     import json
 
@@ -82,7 +79,7 @@ def test_dagger_with_the_mirror_teacher_runs_and_refuses_a_wrong_family(tmp_path
     base = ["train", "dagger", "--no-progress", "--preset", "fast", "--n-envs", "8", "--n-steps", "8",
             "--checkpoint-every", "64", "--grad-steps", "2", "--batch-size", "32", "--n-obstacles", "0",
             "--scenarios", str(crossings), "--scenario-share", "1.0", "--obs-stack", "2", "--lidar", "wide",
-            "--init-from", R16, "--expert", "mirror"]
+            "--init-from", ROW16, "--expert", "mirror"]
     run = tmp_path / "run"
     assert main(base + ["--run-dir", str(run), "--mirror-families", "left-to-right", "--steps", "128"]) == 0
     cfg = json.loads((run / "config.json").read_text())

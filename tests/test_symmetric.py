@@ -9,6 +9,7 @@ import pytest
 
 from racecav.training.mirror import MirroredPolicy, mirror_scans
 from racecav.training.symmetric import mirror_index, pair_swap
+from tests.checkpoints_support import ROW16
 
 
 def test_permutations_are_involutions():
@@ -66,7 +67,7 @@ def test_dagger_fits_a_symmetric_actor_to_the_mirror_teacher(tmp_path):
                  "--scenario-share", "1.0", "--n-envs", "8", "--n-steps", "16", "--batch-size", "64",
                  "--grad-steps", "5", "--checkpoint-every", "128", "--n-obstacles", "0", "--obs-stack", "2",
                  "--lidar", "wide", "--lr", "1e-3",
-                 "--init-from", "common/data/policies/avoid.zip", "--steps", "256", "--no-progress"]) == 0
+                 "--init-from", ROW16, "--steps", "256", "--no-progress"]) == 0
     pol = checkpoint_policy(run / "latest.zip")
     scans = np.random.default_rng(2).uniform(0.2, 12.0, (64, 2 * 169)).astype(np.float32)
     assert np.allclose(MirroredPolicy(pol)(scans), pol(scans), atol=1e-5)

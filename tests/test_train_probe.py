@@ -1,7 +1,8 @@
 """`racecav train probe`: the timing probe is at chance on two draws of the same scenario and tells the
-paper-timed crossing from the conflict-timed one near the crossing (fast world). Row 16 at 4 M (committed)
-drives: the probe compares the two timings at matched speeds, and its speeds 1.5 m out overlap (the
-shipped avoid, row 31, reaches that point at almost one speed in each timing, so too few samples match)."""
+paper-timed crossing from the conflict-timed one near the crossing (fast world). Row 16 at 4 M drives
+(tests/checkpoints_support.py): the probe compares the two timings at matched speeds, and its speeds
+1.5 m out overlap (the shipped avoid, row 31, reaches that point at almost one speed in each timing,
+so too few samples match)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import csv
 
 import pytest
 
-R16 = "training/checkpoints/avoid-papertimed-lowlr/checkpoints/step_004005888.zip"
+from tests.checkpoints_support import ROW16
 
 
 def _probe(tmp_path, sources: str, name: str) -> list[dict]:
@@ -18,7 +19,7 @@ def _probe(tmp_path, sources: str, name: str) -> list[dict]:
 
     out = tmp_path / f"{name}.csv"
     src = ",".join(str(SCENARIOS_DIR / f"{s}.toml") for s in sources.split(","))
-    assert main(["train", "probe", "--policy", R16, "--sources", src, "--family", "", "--n", "512", "--distances", "1.5",
+    assert main(["train", "probe", "--policy", ROW16, "--sources", src, "--family", "", "--n", "512", "--distances", "1.5",
                  "--strides", "0,1", "--out", str(out)]) == 0
     with out.open() as f:
         return list(csv.DictReader(f))
