@@ -248,7 +248,7 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
                                          dict(os.environ), log_path)
                 print(f"racecav eval --table --jobs {jobs}: job {k}: {key}, {left} trials (log {log_path})",
                       flush=True)
-            time.sleep(1.0)
+            time.sleep(2.0)  # the bar re-counts every JSONL line: not more often
             for k, c in list(running.items()):
                 if c.poll() is not None:
                     del running[k]
