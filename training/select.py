@@ -1186,7 +1186,7 @@ def _ablation_markdown() -> str:
           "8 targets, short of the paper-timed left-to-right. "
           "Row 32 (avoid-gsde-lowlr) continues row 31 from its 5 M checkpoint (the shipped avoid) at 2e-5, two "
           "fifths of its learning rate, with the noise as trained (no `--init-std`), to hold that point while it "
-          "improves. 14.4 M samples (80 min of wall time, 17 of them paused, beside the results table; evaluated "
+          "improves. 14.4 M samples (80 min of wall time, 35 of them paused during CI runs, beside the results table; evaluated "
           "at 1, 4, 7 and 10 M with `--every 3`): scores 0.91-0.93, the paper-timed left-to-right at 83-90 %, the "
           "conflict-timed head-on at 82-92 %, the lowest suite family at 66-70 %; its checkpoints meet 5 or 6 of "
           "the 8 targets, none more than row 31's 7. Stopped, rejected; its 4 M checkpoint (0.934) is committed "
