@@ -7,6 +7,8 @@ KeyboardInterrupt, so ``finally`` blocks run, and stops whatever is still runnin
 bench, an evaluation or a demo killed with ``timeout``, Ctrl-C or ``systemctl stop``, or failing
 with an exception, leaves no router or service behind holding its ports. (Children run in their
 own sessions so that a Ctrl-C reaches them only through us, in order: clients before routers.)
+A parent killed with SIGKILL runs no cleanup, so each child watches its parent instead
+(:func:`exit_with_parent`): when it is gone the child stops itself the clean way, and so on down.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import Iterator
 
 _children: list[subprocess.Popen] = []
 _lock = threading.Lock()
+PARENT_ENV = "RACECAV_PARENT_PID"  # set by start(): the pid whose exit stops the child
 
 
 def track(proc: subprocess.Popen) -> subprocess.Popen:
@@ -78,6 +81,28 @@ def install_cleanup() -> None:
         if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
             signal.signal(signal.SIGINT, signal.default_int_handler)
     atexit.register(stop_all)
+    exit_with_parent()
+
+
+def exit_with_parent(poll_s: float = 0.5) -> None:
+    """In a process started by :func:`start`: SIGTERM to itself (its own clean shutdown, which
+    stops what it started in turn) once the process that started it is gone, SIGKILLed included.
+    A process started any other way (systemd, a shell) has no such parent and is left alone."""
+    raw = os.environ.pop(PARENT_ENV, None)  # popped: what this process starts gets its own
+    try:
+        parent = int(raw) if raw else 0
+    except ValueError:
+        return
+    if parent <= 1:
+        return
+
+    def watch() -> None:
+        # orphans are re-parented (to init or a subreaper), so the parent pid changes
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def free_port() -> int:
@@ -105,6 +130,7 @@ def bus_env(endpoint: str, car: str = "car0", extra: dict[str, str] | None = Non
 def start(args: list[str], env: dict[str, str], log_path=None) -> subprocess.Popen:
     """Start ``racecav ARGS`` in its own process group; output to ``log_path`` or inherited."""
     out = open(log_path, "ab") if log_path else None
+    env = {**env, PARENT_ENV: str(os.getpid())}
     return track(subprocess.Popen(racecav_cmd(*args), env=env, stdout=out,
                                   stderr=subprocess.STDOUT if out else None, start_new_session=True))
 

@@ -87,6 +87,8 @@ def test_bad_setups_exit_2_with_one_line(tmp_path):
     (["bench", "bus", "--no-doc", "--samples", "100000"], signal.SIGTERM, 2),  # router + publisher
     (["bench", "bus", "--no-doc", "--samples", "100000"], signal.SIGINT, 2),
     (["demo", "--trials", "50", "--mode", "realtime"], signal.SIGTERM, 3),        # router, sim, policy
+    # SIGKILL runs no cleanup in the command: its children see their parent gone and stop
+    (["demo", "--trials", "50", "--mode", "realtime"], signal.SIGKILL, 3),
 ])
 def test_killed_mid_run_leaves_no_process(args, sig, ready_children, tmp_path):
     if args[0] == "demo":

@@ -46,7 +46,13 @@ def test_select_keeps_family_columns(tmp_path, monkeypatch):
     assert main(sel) == 0
     fields2, rows2 = _eval_rows(run)
     assert fields2 == fields and rows2 == rows
-    assert (tmp_path / "committed" / run.name / "eval.csv").is_file()
+    record = tmp_path / "committed" / run.name
+    assert (record / "eval.csv").is_file()
+
+    # --no-record: a scratch evaluation leaves the committed records alone
+    shutil.rmtree(record)
+    assert main(sel + ["--no-record"]) == 0
+    assert not record.exists()
 
 
 @pytest.mark.timeout(300)

@@ -56,6 +56,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--last", type=int, help="only the last K checkpoints")
     p.add_argument("--every", type=int, default=1, help="every k-th checkpoint (the last always)")
     p.add_argument("--no-intersection", action="store_true", help="held-out env only (racing stage)")
+    p.add_argument("--no-record", action="store_true", help="do not copy the run's records to "
+                   "training/checkpoints/<run>/ (a scratch evaluation, e.g. a folder holding one checkpoint)")
     p.add_argument("--suite-episodes", type=int, default=512, help="runs with --scenarios: fast-world episodes "
                    "on the suite's train split (selection seeds) per checkpoint")
     p.set_defaults(stage="select")
@@ -369,7 +371,11 @@ def select(args, cfg) -> int:
     best = pick_best(rows, not args.no_intersection)
     (run_dir / "best.json").write_text(json.dumps(best, indent=2, default=str) + "\n")
     _plot_eval(rows, run_dir / "eval.png", run_dir.name, not args.no_intersection)
-    save_run_record(run_dir)  # curves, evaluation and latest checkpoint: for the report and --resume
+    if args.no_record:
+        log.info("--no-record: %s stays out of %s", run_dir, COMMITTED)
+    else:  # curves, evaluation and latest checkpoint: for the report and --resume
+        dst = save_run_record(run_dir)
+        log.info("records of %s copied to %s (committed; --no-record for a scratch folder)", run_dir, dst)
     print(f"best checkpoint of {run_dir}: {best['checkpoint']} ({_fmt_row(best)})")
     return 0
 

@@ -119,7 +119,7 @@ def section(records: Path, shipped: dict) -> str:
             "seeds (`racecav train references`). Misses are in italics; the "
             "suite's column is its train split with selection seeds, and \"every family\" is its lowest family. "
             "The test split and the report seeds are not used.\n\n" + table + "\n" + status + " "
-            "At 300 PyBullet trials per scenario and 1536 suite episodes (selection seeds; `racecav train select "
+            "At 300 PyBullet trials per scenario and 1536 suite episodes (selection seeds; `racecav train select --no-record "
             "--trials 300 --suite-episodes 1536` on a run folder that holds only that checkpoint), row 31 at "
             "5.0 M meets the same 7 of 8: conflict-timed 99 / 93 / 98 %, suite 92 % (lowest family 78 %), "
             "paper-timed 100 / 95 / 80 %; row 16 at 4.0 M meets 7 too: conflict-timed 99 / 93 / 98 %, suite 92 % "
