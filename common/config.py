@@ -461,12 +461,13 @@ class TrainConfig(Section):
     touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
     scores better; training/expert.Expert)."""
     expert: Literal["planner", "mirror"] = "planner"
-    """dagger: the teacher. planner: the privileged planner (training/expert.py); mirror: the
-    ``init_from`` policy itself, its action on the mirrored scan in the ``mirror_families``
-    scenarios and its own action elsewhere (training/mirror.py)."""
+    """dagger, and overtake with bc_coef: the teacher. planner: the privileged planner
+    (training/expert.py); mirror: the ``init_from`` policy itself, its action on the mirrored scan
+    in the ``mirror_families`` scenarios and its own action elsewhere (training/mirror.py; with
+    bc_coef only the mirrored steps are labelled, training/imitation_term.py)."""
     mirror_families: str = "cross-left"
-    """dagger with expert mirror: the scenario families (comma-separated, without the suite)
-    whose steps are labelled with the mirrored action."""
+    """dagger or bc_coef with expert mirror: the scenario families (comma-separated, without the
+    suite) whose steps are labelled with the mirrored action."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)
@@ -474,9 +475,10 @@ class TrainConfig(Section):
     checkpointed)."""
     # overtake stage: PPO with the planner's labels as an auxiliary loss (training/imitation_term.py)
     bc_coef: float = Field(0.0, ge=0)
-    """overtake: weight of the imitation of the planner after each PPO update (0: plain PPO)."""
-    bc_label_steps: int = Field(2, ge=1)
-    """overtake with bc_coef: rollout steps at which the planner labels every world."""
+    """overtake: weight of the imitation of the teacher (``expert``) after each PPO update (0: plain PPO)."""
+    bc_label_steps: int = Field(2, ge=0)
+    """overtake with bc_coef: rollout steps at which the teacher labels every world (expert mirror:
+    its own action there, the anchors, besides every mirrored step; 0: no anchors)."""
     bc_grad_steps: int = Field(20, ge=1)
     """overtake with bc_coef: imitation minibatches (batch_size) after each PPO update."""
 

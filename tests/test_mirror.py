@@ -109,3 +109,46 @@ def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_pa
                                                  "| *straight, full throttle* (no evasion)"]
     with pytest.raises(SystemExit, match="--trials"):
         main(["train", "mirror", "--policy", "avoid", "--trials", "0"])
+
+
+def test_ppo_imitation_term_with_the_mirror_teacher(tmp_path, crossings, capsys):
+    """``racecav train overtake --bc-coef C --expert mirror``: PPO plus the fit to the frozen
+    --init-from policy, its mirrored action at every step the teacher mirrors and its own action
+    (the anchors) at --bc-label-steps steps of each rollout; refused without --init-from."""
+    import csv
+
+    from stable_baselines3 import PPO
+
+    from racecav.cli import main
+    from racecav.training.imitation_term import make_callback
+    from racecav.training.runs import load_run_config
+    from racecav.training.train import make_venv
+
+    flags = ["--preset", "fast", "--n-envs", "8", "--n-steps", "8", "--batch-size", "32", "--n-epochs", "1",
+             "--checkpoint-every", "64", "--n-obstacles", "0", "--scenarios", str(crossings),
+             "--scenario-share", "1.0", "--obs-stack", "2", "--lidar", "wide", "--bc-coef", "1",
+             "--bc-grad-steps", "2", "--expert", "mirror", "--mirror-families", "left-to-right"]
+    run = tmp_path / "run"
+    assert main(["train", "overtake", "--no-progress", "--run-dir", str(run), "--steps", "192",
+                 "--init-from", ROW16, "--bc-label-steps", "0", *flags]) == 0
+    with (run / "imitation.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    # no anchors: every label is a mirrored one
+    assert rows and int(rows[-1]["labels"]) > 0 and all(float(r["manoeuvres"]) == 1.0 for r in rows), rows
+
+    for anchors in (0, 2):
+        tc = load_run_config(run)[0].model_copy(update={"bc_label_steps": anchors})
+        venv = make_venv(tc, seed=5)
+        cb = make_callback(tmp_path, tc, venv, seed=0)
+        PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, device="cpu").learn(64, callback=cb)
+        obs, act, mirrored = cb.obs[:cb.size], cb.act[:cb.size], cb.man[:cb.size]
+        # the left-to-right worlds once their car is near, plus 8 worlds at each anchor step
+        assert 0 < mirrored.sum() and (~mirrored).sum() <= 8 * anchors and cb.size < 64
+        assert (~mirrored).any() == (anchors > 0)
+        teacher = cb.teacher.policy
+        assert np.allclose(act[mirrored], mirror_action(teacher(mirror_scans(obs[mirrored], 2))), atol=1e-6)
+        assert np.allclose(act[~mirrored], teacher(obs[~mirrored]), atol=1e-6)
+
+    assert main(["train", "overtake", "--no-progress", "--run-dir", str(tmp_path / "bad"), "--steps", "64",
+                 *flags]) == 2
+    assert "--init-from" in capsys.readouterr().out

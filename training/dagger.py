@@ -1,6 +1,7 @@
 """``racecav train dagger``: the policy imitates a privileged planner (DAgger), resumable.
 
-    racecav train dagger --run-dir runs/avoid-dagger --init-from common/data/policies/avoid.zip \\
+    racecav train dagger --run-dir runs/avoid-dagger \\
+        --init-from training/checkpoints/avoid-wide/checkpoints/step_052002816.zip \\
         --preset fast --heading reversed --world figure8 --n-obstacles 8 --driver centerline \\
         --scenarios conflicts,traffic --scenario-share 0.8 --lidar wide --obs-stack 2 --steps 2e6
 

@@ -16,6 +16,15 @@ rollout, states the policy itself reached (DAgger's on-policy labels). The newes
 run's current statistics); the aggregate is not checkpointed. imitation.csv in the run folder
 holds one row per fit: labels so far, the loss, the steering agreement with the planner on the
 newest labels, and the share of labels that are a manoeuvre rather than plain tracking.
+
+``--expert mirror`` replaces the planner by the mirror teacher of training/mirror.py, the frozen
+``--init-from`` policy: its action on the mirrored scans at every step it mirrors (a world running
+a ``--mirror-families`` scenario whose car is near on the ego's left), and its own action at
+``bc_label_steps`` random steps of each rollout (0: none). The mirrored labels pull the crossings
+from the left towards the reflection of the policy's crossings from the right; the others anchor
+everything else where it was, beside PPO's own objective (row 34 ran without them, and its
+crossings from the right followed the left ones into the mirror). Row 22 fitted the same labels
+without PPO (pure DAgger) and lost the conflicts.
 """
 
 from __future__ import annotations
@@ -34,12 +43,17 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
     """The SB3 callback that labels and fits (``fast``: the run's FastVecEnv)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
+    from racecav.training.dagger import mirror_teacher
     from racecav.training.expert import Expert
+
+    mirror = tc.expert == "mirror"
 
     class _ImitationTerm(BaseCallback):
         def __init__(self):
             super().__init__()
-            self.experts = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds]
+            self.teacher = mirror_teacher(tc, fast) if mirror else None
+            self.experts = [] if mirror else [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s)
+                                              for w in fast.worlds]
             self.car = fast.world.car
             self.lo, self.hi = action_bounds(self.car)
             self.rng = np.random.default_rng(seed)
@@ -61,23 +75,35 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             # after the previous PPO update (the train callback checkpoints after this one)
             if self.size:
                 self._fit()
-            self.label_at = set(self.rng.choice(tc.n_steps, tc.bc_label_steps, replace=False).tolist())
+            self.label_at = set(self.rng.choice(tc.n_steps, min(tc.bc_label_steps, tc.n_steps), replace=False).tolist())
             self.step_in_rollout = 0
             self.new = (self.head, 0)
 
+        def _raw_obs(self) -> np.ndarray:
+            vn = self.model.get_vec_normalize_env()
+            return vn.get_original_obs() if vn is not None else self.locals["new_obs"]
+
+        def _store(self, raw: np.ndarray, label: np.ndarray, man: np.ndarray) -> None:
+            n = len(raw)
+            k = np.arange(self.head, self.head + n) % len(self.obs)
+            self.obs[k], self.act[k], self.man[k] = raw, label, man
+            self.head, self.size = (self.head + n) % len(self.obs), min(self.size + n, len(self.obs))
+            self.new = (self.new[0], self.new[1] + n)
+
         def _on_step(self) -> bool:
             # the worlds' state now is the one new_obs was scanned in (auto-resets included)
-            if self.step_in_rollout in self.label_at:
+            if mirror:  # every mirrored step; every world at the anchor steps
+                raw = self._raw_obs()
+                label, mask = self.teacher.labels(raw)
+                keep = mask | (self.step_in_rollout in self.label_at)
+                if keep.any():
+                    self._store(raw[keep], label[keep], mask[keep])
+            elif self.step_in_rollout in self.label_at:
                 for e in self.experts:
                     e.last_best[:] = 0  # labels at spaced steps: no hysteresis to keep
                 label = np.concatenate([e.act() for e in self.experts])
                 man = np.concatenate([e.last_best != 0 for e in self.experts])
-                vn = self.model.get_vec_normalize_env()
-                raw = vn.get_original_obs() if vn is not None else self.locals["new_obs"]
-                k = np.arange(self.head, self.head + self.n) % len(self.obs)
-                self.obs[k], self.act[k], self.man[k] = raw, label, man
-                self.head, self.size = (self.head + self.n) % len(self.obs), min(self.size + self.n, len(self.obs))
-                self.new = (self.new[0], self.new[1] + self.n)
+                self._store(self._raw_obs(), label, man)
             self.step_in_rollout += 1
             return True
 

@@ -54,7 +54,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--trials", type=int, default=30, help="PyBullet trials per scenario and checkpoint")
     p.add_argument("--episodes", type=int, default=64, help="held-out episodes in the training env")
     p.add_argument("--last", type=int, help="only the last K checkpoints")
-    p.add_argument("--every", type=int, default=1, help="every k-th checkpoint (the last always)")
+    p.add_argument("--every", type=int, default=1, help="every k-th checkpoint, counted back from the newest "
+                   "(which is always evaluated)")
     p.add_argument("--no-intersection", action="store_true", help="held-out env only (racing stage)")
     p.add_argument("--no-record", action="store_true", help="do not copy the run's records to "
                    "training/checkpoints/<run>/ (a scratch evaluation, e.g. a folder holding one checkpoint)")

@@ -47,8 +47,8 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
-IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert_horizon_s", "expert_commit_s",
-                   "dataset_max")
+IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert", "mirror_families", "expert_horizon_s",
+                   "expert_commit_s", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
@@ -369,7 +369,13 @@ def open_run(args, cfg, run_dir: Path):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
         return None
-    if tc.bc_coef > 0 and tc.env.n_obstacles and tc.env.driver != "centerline":
+    if tc.bc_coef > 0 and tc.expert == "mirror" and not tc.init_from:
+        print("racecav train: --bc-coef with --expert mirror needs --init-from (the frozen teacher)")
+        return None
+    if tc.bc_coef > 0 and tc.expert == "planner" and tc.bc_label_steps < 1:
+        print("racecav train: --bc-coef with the planner needs --bc-label-steps >= 1 (its only labels)")
+        return None
+    if tc.bc_coef > 0 and tc.expert == "planner" and tc.env.n_obstacles and tc.env.driver != "centerline":
         print("racecav train: --bc-coef needs traffic the planner can predict (--driver centerline)")
         return None
     record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
