@@ -468,6 +468,10 @@ class TrainConfig(Section):
     mirror_families: str = "cross-left"
     """dagger or bc_coef with expert mirror: the scenario families (comma-separated, without the
     suite) whose steps are labelled with the mirrored action."""
+    anchor_families: str = ""
+    """overtake with bc_coef and expert mirror: families (comma-separated) whose steps with a car
+    near on the ego's right are labelled with the teacher's own action (e.g. cross-right, the
+    mirror pair), besides the anchor steps; training/mirror.MirrorTeacher.anchored."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)

@@ -62,6 +62,20 @@ def test_teacher_mirrors_only_a_mirrored_family_with_a_car_near_on_the_left(cros
     assert seen_mirrored[fam == "left-to-right"].all()
     env.close()
 
+    # the anchors: the mirror image of that mask, in the anchor families
+    env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2), seed=3)
+    teacher = MirrorTeacher(policy, env, ["left-to-right"], anchor_families=["right-to-left"])
+    env.reset()
+    seen_anchored = np.zeros(env.num_envs, bool)
+    for _ in range(25):
+        anchored = teacher.anchored()
+        assert not anchored[fam != "right-to-left"].any() and not (anchored & teacher.mirrored()).any()
+        seen_anchored |= anchored
+        env.step(np.tile(np.array([0.2, 0.0], np.float32), (env.num_envs, 1)))
+    assert seen_anchored[fam == "right-to-left"].all()
+    env.close()
+
 
 def test_teacher_names_a_family_the_scenarios_lack(crossings):
     env = FastVecEnv(config=EnvConfig(n_envs=4, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
@@ -136,15 +150,17 @@ def test_ppo_imitation_term_with_the_mirror_teacher(tmp_path, crossings, capsys)
     # no anchors: every label is a mirrored one
     assert rows and int(rows[-1]["labels"]) > 0 and all(float(r["manoeuvres"]) == 1.0 for r in rows), rows
 
-    for anchors in (0, 2):
-        tc = load_run_config(run)[0].model_copy(update={"bc_label_steps": anchors})
+    for anchors, anchor_families in ((0, ""), (2, ""), (0, "right-to-left")):
+        tc = load_run_config(run)[0].model_copy(update={"bc_label_steps": anchors, "anchor_families": anchor_families})
         venv = make_venv(tc, seed=5)
         cb = make_callback(tmp_path, tc, venv, seed=0)
         PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, device="cpu").learn(64, callback=cb)
         obs, act, mirrored = cb.obs[:cb.size], cb.act[:cb.size], cb.man[:cb.size]
-        # the left-to-right worlds once their car is near, plus 8 worlds at each anchor step
-        assert 0 < mirrored.sum() and (~mirrored).sum() <= 8 * anchors and cb.size < 64
-        assert (~mirrored).any() == (anchors > 0)
+        # the left-to-right worlds once their car is near, plus 8 worlds at each anchor step, plus
+        # the right-to-left worlds once their car is near on the right
+        assert 0 < mirrored.sum() and cb.size < 64
+        assert (~mirrored).sum() <= (8 * anchors if not anchor_families else 64)
+        assert (~mirrored).any() == (anchors > 0 or bool(anchor_families))
         teacher = cb.teacher.policy
         assert np.allclose(act[mirrored], mirror_action(teacher(mirror_scans(obs[mirrored], 2))), atol=1e-6)
         assert np.allclose(act[~mirrored], teacher(obs[~mirrored]), atol=1e-6)

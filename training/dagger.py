@@ -83,7 +83,8 @@ def mirror_teacher(tc, fast):
     if policy.obs_dim != fast.observation_space.shape[0]:
         raise ValueError(f"--expert mirror: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
-    return MirrorTeacher(policy, fast, [f.strip() for f in tc.mirror_families.split(",") if f.strip()])
+    names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
+    return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families))
 
 
 class _Stop:

@@ -20,9 +20,10 @@ newest labels, and the share of labels that are a manoeuvre rather than plain tr
 ``--expert mirror`` replaces the planner by the mirror teacher of training/mirror.py, the frozen
 ``--init-from`` policy: its action on the mirrored scans at every step it mirrors (a world running
 a ``--mirror-families`` scenario whose car is near on the ego's left), and its own action at
-``bc_label_steps`` random steps of each rollout (0: none). The mirrored labels pull the crossings
-from the left towards the reflection of the policy's crossings from the right; the others anchor
-everything else where it was, beside PPO's own objective (row 34 ran without them, and its
+``bc_label_steps`` random steps of each rollout (0: none) and at every step of an
+``--anchor-families`` scenario whose car is near on the ego's right. The mirrored labels pull the
+crossings from the left towards the reflection of the policy's crossings from the right; the
+others anchor the rest where it was, beside PPO's own objective (row 34 ran without them, and its
 crossings from the right followed the left ones into the mirror). Row 22 fitted the same labels
 without PPO (pure DAgger) and lost the conflicts.
 """
@@ -95,7 +96,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             if mirror:  # every mirrored step; every world at the anchor steps
                 raw = self._raw_obs()
                 label, mask = self.teacher.labels(raw)
-                keep = mask | (self.step_in_rollout in self.label_at)
+                keep = mask | self.teacher.anchored() | (self.step_in_rollout in self.label_at)
                 if keep.any():
                     self._store(raw[keep], label[keep], mask[keep])
             elif self.step_in_rollout in self.label_at:

@@ -51,39 +51,56 @@ class MirrorTeacher:
     normalisation) on raw scans, mirrored in the worlds that run a scenario of ``families``.
 
     :param families: family names without the suite (``cross-left`` matches every suite's).
+    :param anchor_families: families whose steps with a car near on the ego's *right* the
+        imitation term labels with the policy's own action (:meth:`anchored`), e.g. the mirror
+        pair ``cross-right``, so that the reflected skill does not spill onto the side it came from.
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
 
-    def __init__(self, policy, fast_env, families: list[str]):
+    def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = ()):
         self.policy, self.fast = policy, fast_env
         have = sorted({f.split("/")[-1] for w in fast_env.worlds if w.actors is not None
                        for f in w.scenario_families})
-        unknown = [f for f in families if f not in have]
-        if not families or unknown:
-            raise ValueError(f"--mirror-families: {unknown or families} not among the scenario families {have}")
+        for flag, names in (("--mirror-families", families), ("--anchor-families", anchor_families)):
+            unknown = [f for f in names if f not in have]
+            if (flag == "--mirror-families" and not names) or unknown:
+                raise ValueError(f"{flag}: {unknown or names} not among the scenario families {have}")
         self.families = set(families)
-        # per world: a bool per scenario file, True where its family is mirrored
-        self._mirrored = [None if w.actors is None else
-                          np.array([f.split("/")[-1] in self.families for f in w.scenario_families])
-                          for w in fast_env.worlds]
+        # per world: a bool per scenario file, True where its family is mirrored (anchored)
+        self._mirrored = self._per_file(set(families))
+        self._anchored = self._per_file(set(anchor_families))
 
-    def mirrored(self) -> np.ndarray:
-        """(N,) bool: the worlds whose current episode is a scenario of a mirrored family and
-        whose ego has an actor on its left within ``NEAR_M``. Before that the scene is about
-        symmetric, and the policy's own label keeps one answer per scan (mirrored labels there
-        would teach, e.g., the mirrored lane position for the same empty road)."""
+    def _per_file(self, names: set[str]) -> list[np.ndarray | None]:
+        return [None if w.actors is None else np.array([f.split("/")[-1] in names for f in w.scenario_families])
+                for w in self.fast.worlds]
+
+    def _near(self, per_file: list[np.ndarray | None], side: float) -> np.ndarray:
+        """(N,) bool: a world running a file of ``per_file`` whose ego has an actor within
+        ``NEAR_M`` on its left (``side`` +1) or right (-1), not behind it."""
         out = []
-        for w, m in zip(self.fast.worlds, self._mirrored):
+        for w, m in zip(self.fast.worlds, per_file):
             if m is None:
                 out.append(np.zeros(w.n_envs, bool))
                 continue
             dx, dy = w.x[:, 1:] - w.x[:, :1], w.y[:, 1:] - w.y[:, :1]
             c, s = np.cos(w.yaw[:, :1]), np.sin(w.yaw[:, :1])
             ahead, left = c * dx + s * dy, -s * dx + c * dy
-            near = (np.hypot(dx, dy) < NEAR_M) & (left > LEFT_M) & (ahead > -0.5)
+            near = (np.hypot(dx, dy) < NEAR_M) & (side * left > LEFT_M) & (ahead > -0.5)
             out.append(m[w.scenario_index] & near.any(axis=1))
         return np.concatenate(out)
+
+    def mirrored(self) -> np.ndarray:
+        """(N,) bool: the worlds whose current episode is a scenario of a mirrored family and
+        whose ego has an actor on its left within ``NEAR_M``. Before that the scene is about
+        symmetric, and the policy's own label keeps one answer per scan (mirrored labels there
+        would teach, e.g., the mirrored lane position for the same empty road)."""
+        return self._near(self._mirrored, +1.0)
+
+    def anchored(self) -> np.ndarray:
+        """(N,) bool: the worlds of an anchor family whose ego has an actor near on its right
+        (the mirror image of :meth:`mirrored`); their label is the policy's own action."""
+        return self._near(self._anchored, -1.0)
 
     def labels(self, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(labels (N, 2), mirrored (N,)) for the raw (not normalised) stacked scans ``raw_obs``."""
