@@ -96,6 +96,8 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             if mirror:  # every mirrored step; every world at the anchor steps
                 raw = self._raw_obs()
                 label, mask = self.teacher.labels(raw)
+                # as the car acts (dagger.py): a policy teacher's steering saturates beyond the range
+                label = np.clip(label, self.lo, self.hi)
                 keep = mask | self.teacher.anchored() | (self.step_in_rollout in self.label_at)
                 if keep.any():
                     self._store(raw[keep], label[keep], mask[keep])
