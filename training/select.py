@@ -758,7 +758,9 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-flow", "avoid-papertimed-lowlr"), ("avoid-flow60", "avoid-papertimed-lowlr"),
             ("avoid-flow60-std", "avoid-flow60"), ("avoid-bound", "avoid-flow60"), ("avoid-gsde", "avoid-flow60"),
             ("avoid-gsde32", "avoid-gsde"), ("avoid-gsde-flow120", "avoid-gsde32"),
-            ("avoid-gsde-lowlr", "avoid-gsde-flow120"))
+            ("avoid-gsde-lowlr", "avoid-gsde-flow120"), ("avoid-gsde-flow240", "avoid-gsde-flow120"),
+            ("avoid-gsde-mirrorbc", "avoid-gsde-flow120"), ("avoid-gsde-mirrorbc-anchor", "avoid-gsde-mirrorbc"),
+            ("avoid-gsde-mirrorbc-sides", "avoid-gsde-mirrorbc"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -788,8 +790,10 @@ def _ablation_markdown() -> str:
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
                 "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
-            + [f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
-                                                                          "expert_commit_s", "expert", "mirror_symmetric",
+            + [f"{k} {getattr(prev, k)!r} -> {getattr(tc, k)!r}" if k == "anchor_families" else
+               f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
+                                                                          "bc_label_steps", "bc_grad_steps", "expert_commit_s",
+                                                                          "expert", "mirror_families", "anchor_families", "mirror_symmetric",
                                                                           "mirror_augment", "steer_bound_coef", "sde_sample_freq")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
             # a reset of the loaded policy's action std (None: kept as trained, not a change)
@@ -1198,7 +1202,49 @@ def _ablation_markdown() -> str:
           "conflict-timed head-on at 82-92 %, the lowest suite family at 66-70 %; its checkpoints meet 5 or 6 of "
           "the 8 targets, none more than row 31's 7. Stopped, rejected; its 4 M checkpoint (0.934) is committed "
           "(training/checkpoints/avoid-gsde-lowlr/checkpoints/), and it resumes with `racecav train overtake "
-          "--resume --run-dir runs/avoid-gsde-lowlr --steps 60e6` after copying that folder to runs/.", ""]
+          "--resume --run-dir runs/avoid-gsde-lowlr --steps 60e6` after copying that folder to runs/. "
+          "Row 33 (avoid-gsde-flow240) doubles the flow weight again (`--flow-reward 240`), from row 16's 4 M "
+          "checkpoint with `--init-std 0.3`, as row 31. 7.9 M samples in 21 min (evaluated to 5 M, then stopped for "
+          "row 34): scores 0.91-0.93, the paper-timed left-to-right at 71-86 %, the conflict-timed head-on at "
+          "89-94 %, the lowest suite family at 69-77 %; its 1 and 2 M checkpoints meet 7 of the 8 targets "
+          "(paper-timed left-to-right 80 and 72 %), the others 4-6. From 20 to 120 the weight raised the best "
+          "checkpoint's left-to-right from 72 to 83 %; 240 adds nothing. Rejected. "
+          "Row 34 (avoid-gsde-mirrorbc) carries the mirror image's skill over inside PPO: row 31's flags from its "
+          "5 M checkpoint with an imitation term (`--bc-coef 0.05 --bc-grad-steps 20 --expert mirror "
+          "--mirror-families cross-left --bc-label-steps 0`, training/imitation_term.py): after each PPO update "
+          "20 minibatches fit the policy's mean to the frozen 5 M policy's mirrored action at every step of a "
+          "cross-left scenario whose car is within 5 m on the ego's left (about 3 % of the steps), and PPO's "
+          "objective holds the rest (row 22 fitted such labels without PPO). The left side moves at once and "
+          "stays: paper-timed left-to-right 96-100 % and conflict-timed 98-100 %, the suite's cross-left 85-100 %, "
+          "from the first checkpoint on, the first row to pass both timings from the left. The right side "
+          "follows it into the mirror: paper-timed right-to-left 55-71 %, conflict-timed 72-85 %, cross-right "
+          "58-68 %, and the staggered family (a car from the right, then one from the left) at 0-10 %, with "
+          "head-on at 63-81 % and stopped at 59-73 %: scores 0.78-0.83 over 8 checkpoints to 7.1 M (22 min), no trend "
+          "after 2 M, 2-4 of the 8 targets. In training the conflict suite's crossing families fell to 15-17 % within "
+          "0.07 M samples and recovered to 50-73 % by 0.65 M (curriculum.csv). Stopped, rejected. (Its config.json "
+          "says `bc_label_steps: 0`: it ran before the anchors below existed, when the field was ignored with "
+          "the mirror teacher.) "
+          "Row 35 (avoid-gsde-mirrorbc-anchor) is row 34 with anchors: every world also labelled with the "
+          "teacher's own action at 4 random steps of each rollout (`--bc-label-steps 4`, about half the "
+          "labels), to hold what is not mirrored. It collapses instead: in training the conflict suite's crossings "
+          "from the right fall from 93 % at 0.07 M samples to 7 % at 0.65 M, those from the left from 46 to 4 % "
+          "(curriculum.csv), and its 1-3 M "
+          "checkpoints score 0.21-0.26 (conflict-timed 0-4 / 39-70 / 0-2 %, and on the paper-timed "
+          "left-to-right the ego turns away, -2.3 to -2.6 m of progress). Likely why: the anchors contradict the mirrored labels "
+          "on near-identical scans: a car on the ego's left at 5.1 m, or in a traffic or staggered episode, "
+          "is labelled with the left turn, at 4.9 m in a cross-left episode with the mirrored right turn. "
+          "Stopped at 4.5 M, rejected. "
+          "Row 36 (avoid-gsde-mirrorbc-sides) is row 34 with anchors only where they are the mirror image of "
+          "the mirrored labels: the teacher's own action at every step of a cross-right scenario whose car is "
+          "within 5 m on the ego's right (`--anchor-families cross-right`, training/mirror.MirrorTeacher.anchored; "
+          "43 % of the labels), so that both kinds of label turn with the crossing car's flow, each on its own "
+          "side. It learns neither side: in training the conflict suite's crossings fall to 15-21 % within "
+          "0.07 M samples and stay at 11-34 % from the left and 32-57 % from the right from 0.65 M on "
+          "(curriculum.csv), and its 1-3 M checkpoints score 0.51-0.53 (conflict-timed 71-90 / 29-34 / 3-6 %, "
+          "paper-timed 96-100 / 67-83 / 37-49 %, suite 44-46 % with its cross-left at 8-13 %), the imitation "
+          "loss still at 7.0 at 4.7 M (row 34's: 0.6). 4.7 M samples in 13 min; stopped, rejected. Within "
+          "these budgets the 2 x 64 network, moved this hard by the imitation term (20 minibatches after each "
+          "update), does not hold a left-side and a right-side evasion at once.", ""]
     mirror_md = COMMITTED / "mirror-avoid.md"
     if mirror_md.is_file():
         L += ["### Row 16 and its mirror image", "",
@@ -1213,6 +1259,12 @@ def _ablation_markdown() -> str:
               "(the same scans, mirrored, suffice) but a skill the network has for the other side. Rows 22-24 "
               "try to carry it over, rows 25-26 to teach its evasion with the crossing car's flow.", "",
               mirror_md.read_text(), ""]
+    mirror31_md = COMMITTED / "mirror-avoid-gsde-flow120.md"
+    if mirror31_md.is_file():
+        L += ["Row 31 at 5 M (the avoid shipped on 2026-12-02, the teacher of rows 34-36) is less lopsided and its "
+              "mirror image a weaker teacher: it reflects onto the left 93 % of the paper-timed crossing from "
+              "the right and 89 % of the conflict-timed one (row 16's: 98 and 99 %), against row 31's own 83 and 97 %.",
+              "", mirror31_md.read_text(), ""]
     probe_md = COMMITTED / "probe-cross-left.md"
     if probe_md.is_file():
         L += ["### When the view tells the two timings apart", "",
