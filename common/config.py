@@ -464,7 +464,7 @@ class TrainConfig(Section):
     """dagger, and overtake with bc_coef: the teacher. planner: the privileged planner
     (training/expert.py); mirror: the ``init_from`` policy itself, its action on the mirrored scan
     in the ``mirror_families`` scenarios and its own action elsewhere (training/mirror.py; with
-    bc_coef only the mirrored steps are labelled, training/imitation_term.py)."""
+    bc_coef the mirrored steps and the anchors are labelled, training/imitation_term.py)."""
     mirror_families: str = "cross-left"
     """dagger or bc_coef with expert mirror: the scenario families (comma-separated, without the
     suite) whose steps are labelled with the mirrored action."""

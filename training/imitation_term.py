@@ -23,9 +23,10 @@ a ``--mirror-families`` scenario whose car is near on the ego's left), and its o
 ``bc_label_steps`` random steps of each rollout (0: none) and at every step of an
 ``--anchor-families`` scenario whose car is near on the ego's right. The mirrored labels pull the
 crossings from the left towards the reflection of the policy's crossings from the right; the
-others anchor the rest where it was, beside PPO's own objective (row 34 ran without them, and its
-crossings from the right followed the left ones into the mirror). Row 22 fitted the same labels
-without PPO (pure DAgger) and lost the conflicts.
+others are meant to hold the rest where it was, beside PPO's own objective. Measured (docs/training.md,
+rows 34-37): the crossings from the left pass both timings, and those from the right follow them into
+the mirror, with or without either kind of anchor. Row 22 fitted the same labels without PPO (pure
+DAgger) and lost the conflicts.
 """
 
 from __future__ import annotations
@@ -58,12 +59,11 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             self.car = fast.world.car
             self.lo, self.hi = action_bounds(self.car)
             self.rng = np.random.default_rng(seed)
-            n, dim, cap = fast.num_envs, fast.observation_space.shape[0], tc.dataset_max
+            dim, cap = fast.observation_space.shape[0], tc.dataset_max
             self.obs = np.zeros((cap, dim), np.float32)
             self.act = np.zeros((cap, 2), np.float32)
             self.man = np.zeros(cap, bool)
             self.size = self.head = 0
-            self.n = n
             self.new = (0, 0)  # (start, count) of the newest labels: the agreement is measured on them
             self.label_at: set[int] = set()
             self.step_in_rollout = 0

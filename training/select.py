@@ -1273,7 +1273,7 @@ def _ablation_markdown() -> str:
               mirror_md.read_text(), ""]
     mirror31_md = COMMITTED / "mirror-avoid-gsde-flow120.md"
     if mirror31_md.is_file():
-        L += ["Row 31 at 5 M (the avoid shipped on 2026-12-02, the teacher of rows 34-36) is less lopsided and its "
+        L += ["Row 31 at 5 M (the avoid shipped on 2026-12-02, the teacher of rows 34-37) is less lopsided and its "
               "mirror image a weaker teacher: it reflects onto the left 93 % of the paper-timed crossing from "
               "the right and 89 % of the conflict-timed one (row 16's: 98 and 99 %), against row 31's own 83 and 97 %.",
               "", mirror31_md.read_text(), ""]
