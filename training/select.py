@@ -381,6 +381,11 @@ def select(args, cfg) -> int:
     return 0
 
 
+def _shown(value) -> str:
+    """A setting as the ablation's change column prints it (an empty string would print as nothing)."""
+    return repr(value) if value == "" else str(value)
+
+
 def pick_best(rows: list[dict], intersection: bool) -> dict:
     """Highest mean intersection success in steps of SUCCESS_RESOLUTION (smaller differences are
     noise at 30 trials per scenario), then the highest held-out return in the training env, then
@@ -790,8 +795,7 @@ def _ablation_markdown() -> str:
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
                 "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
-            + [f"{k} {getattr(prev, k)!r} -> {getattr(tc, k)!r}" if k == "anchor_families" else
-               f"{k} {getattr(prev, k)} -> {getattr(tc, k)}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
+            + [f"{k} {_shown(getattr(prev, k))} -> {_shown(getattr(tc, k))}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
                                                                           "bc_label_steps", "bc_grad_steps", "expert_commit_s",
                                                                           "expert", "mirror_families", "anchor_families", "mirror_symmetric",
                                                                           "mirror_augment", "steer_bound_coef", "sde_sample_freq")
