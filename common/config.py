@@ -445,6 +445,9 @@ class TrainConfig(Section):
     """Generalised state-dependent exploration (SB3's ``use_sde``): the action noise is a random
     linear function of the policy's last hidden layer, drawn anew every this many steps (-1: once
     per rollout), so an exploratory turn lasts. None: SB3's independent noise at every step."""
+    hidden: int = Field(64, ge=2)
+    """Units in each of the two hidden layers of actor and critic (64: the paper's MlpPolicy). A
+    narrower ``init_from`` policy is widened with its function kept (training/widen.py)."""
     steer_bound_coef: float = Field(0.0, ge=0)
     """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
     actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""

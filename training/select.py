@@ -798,7 +798,7 @@ def _ablation_markdown() -> str:
             + [f"{k} {_shown(getattr(prev, k))} -> {_shown(getattr(tc, k))}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
                                                                           "bc_label_steps", "bc_grad_steps", "expert_commit_s",
                                                                           "expert", "mirror_families", "anchor_families", "mirror_symmetric",
-                                                                          "mirror_augment", "steer_bound_coef", "sde_sample_freq")
+                                                                          "mirror_augment", "steer_bound_coef", "sde_sample_freq", "hidden")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
             # a reset of the loaded policy's action std (None: kept as trained, not a change)
             + ([f"init_std {prev.init_std} -> {tc.init_std}"] if tc.init_std not in (None, prev.init_std) else [])) or "-"

@@ -43,7 +43,7 @@ log = logging.getLogger("racecav.train")
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
                "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
-               "sde_sample_freq")
+               "sde_sample_freq", "hidden")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
@@ -220,7 +220,7 @@ def make_venv(tc, seed: int):
 def _ppo_kwargs(tc) -> dict:
     import torch
 
-    policy_kwargs = dict(net_arch=[64, 64], activation_fn=torch.nn.Tanh)
+    policy_kwargs = dict(net_arch=[tc.hidden, tc.hidden], activation_fn=torch.nn.Tanh)
     if tc.mirror_symmetric:
         policy_kwargs["obs_stack"] = tc.env.obs_stack
     sde = {} if tc.sde_sample_freq is None else dict(use_sde=True, sde_sample_freq=tc.sde_sample_freq)
@@ -530,6 +530,11 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     src = PPO.load(path, device="cpu").policy.state_dict()
     dst = model.policy.state_dict()
     n_stack = dst["mlp_extractor.policy_net.0.weight"].shape[1] // view.n_rays
+    width = dst["mlp_extractor.policy_net.0.weight"].shape[0]
+    if src["mlp_extractor.policy_net.0.weight"].shape[0] != width:  # a narrower source: same function, wider
+        from racecav.training.widen import widen
+
+        src = widen(src, width)
     for k, v in src.items():
         if k == "log_std":  # below: its shape differs with gSDE
             continue
