@@ -471,6 +471,9 @@ class TrainConfig(Section):
     mirror_families: str = "cross-left"
     """dagger or bc_coef with expert mirror: the scenario families (comma-separated, without the
     suite) whose steps are labelled with the mirrored action."""
+    mirror_seen: bool = False
+    """dagger or bc_coef with expert mirror: label a mirrored (or anchored) step only while its car
+    is in the ego's scan, not hidden by the intersection's corners (training/mirror.py)."""
     anchor_families: str = ""
     """overtake with bc_coef and expert mirror: families (comma-separated) whose steps with a car
     near on the ego's right are labelled with the teacher's own action (e.g. cross-right, the

@@ -419,6 +419,28 @@ class FastWorld:
                     self.spec.angle_min, self.spec.angle_increment, self.spec.range_max,
                     self.ranges)
 
+    def seen_by_agent(self, envs: np.ndarray) -> np.ndarray:
+        """(len(envs), C - 1) bool: the other cars that return at least one ray of the agent's
+        current scan in the worlds ``envs`` (line of sight past the walls and the other cars).
+        Each car is taken out in turn and the agent's scan redone: a car is seen where that
+        changes the scan. Costs one agent scan per other car and world."""
+        envs = np.asarray(envs, dtype=np.int64)
+        N, C = self.x.shape
+        out = np.zeros((len(envs), C - 1), dtype=bool)
+        if not len(envs):
+            return out
+        observe = np.zeros_like(self.observe)
+        observe[envs, 0] = True
+        ranges = np.empty_like(self.ranges)
+        for c in range(1, C):
+            active = self.active.copy()
+            active[:, c] = False
+            self._lidar(self.x, self.y, self.yaw, active, observe, self.faces, self.chunks, self.corners,
+                        self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min,
+                        self.spec.angle_increment, self.spec.range_max, ranges)
+            out[:, c - 1] = (ranges[envs, 0] != self.ranges[envs, 0]).any(axis=1) & self.active[envs, c]
+        return out
+
     # ------------------------------------------------------------------ views
     def agent_obs(self) -> np.ndarray:
         """The agents' observations (N, 170): Scan ranges through the shared ``sanitize``."""

@@ -150,15 +150,18 @@ def test_ppo_imitation_term_with_the_mirror_teacher(tmp_path, crossings, capsys)
     # no anchors: every label is a mirrored one
     assert rows and int(rows[-1]["labels"]) > 0 and all(float(r["manoeuvres"]) == 1.0 for r in rows), rows
 
-    for anchors, anchor_families in ((0, ""), (2, ""), (0, "right-to-left")):
-        tc = load_run_config(run)[0].model_copy(update={"bc_label_steps": anchors, "anchor_families": anchor_families})
+    for anchors, anchor_families, seen in ((0, "", False), (2, "", False), (0, "right-to-left", False), (0, "", True)):
+        tc = load_run_config(run)[0].model_copy(update={"bc_label_steps": anchors, "anchor_families": anchor_families,
+                                                         "mirror_seen": seen})
         venv = make_venv(tc, seed=5)
         cb = make_callback(tmp_path, tc, venv, seed=0)
-        PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, device="cpu").learn(64, callback=cb)
+        assert cb.teacher.seen_only == seen  # --mirror-seen reaches the teacher
+        samples = 256 if seen else 64  # a seen car comes later: the corners hide it at first
+        PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, device="cpu").learn(samples, callback=cb)
         obs, act, mirrored = cb.obs[:cb.size], cb.act[:cb.size], cb.man[:cb.size]
         # the left-to-right worlds once their car is near, plus 8 worlds at each anchor step, plus
         # the right-to-left worlds once their car is near on the right
-        assert 0 < mirrored.sum() and cb.size < 64
+        assert 0 < mirrored.sum() and cb.size < samples
         assert (~mirrored).sum() <= (8 * anchors if not anchor_families else 64)
         assert (~mirrored).any() == (anchors > 0 or bool(anchor_families))
         teacher = cb.teacher.policy
@@ -170,3 +173,50 @@ def test_ppo_imitation_term_with_the_mirror_teacher(tmp_path, crossings, capsys)
     assert main(["train", "overtake", "--no-progress", "--run-dir", str(tmp_path / "bad"), "--steps", "64",
                  *flags]) == 2
     assert "--init-from" in capsys.readouterr().out
+
+
+def _blocked(p, q, walls) -> bool:
+    """The segment p -> q crosses one of the wall centre lines (x0, y0, x1, y1)."""
+    def side(a, b, c):
+        return np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+    return any(side(p, q, w[:2]) * side(p, q, w[2:]) < 0 and side(w[:2], w[2:], p) * side(w[:2], w[2:], q) < 0
+               for w in walls)
+
+
+def test_seen_cars_are_the_ones_in_line_of_sight_and_the_teacher_labels_only_those(crossings):
+    """FastWorld.seen_by_agent against plain line of sight: a car whose four corners are all
+    behind a wall is never seen, one whose centre is in clear view well inside the field of view
+    always is; the teacher with seen_only mirrors a subset of its near steps, each with its car
+    seen, and the corners hide the crossing car for part of the approach."""
+    from racecav.common.world import load_world
+
+    walls = load_world("intersection").walls
+    policy = load_policy("avoid")
+    env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2), seed=3)
+    near_only = MirrorTeacher(policy, env, ["left-to-right"])
+    seen_only = MirrorTeacher(policy, env, ["left-to-right"], seen_only=True)
+    env.reset()
+    (w,) = env.worlds
+    hidden = clear = hidden_near = 0
+    for _ in range(25):
+        seen = w.seen_by_agent(np.arange(w.x.shape[0]))
+        c, s = np.cos(w.yaw[:, 0]), np.sin(w.yaw[:, 0])
+        for n in range(w.x.shape[0]):
+            lidar = (w.x[n, 0] + c[n] * w.mount[0] - s[n] * w.mount[1], w.y[n, 0] + s[n] * w.mount[0] + c[n] * w.mount[1])
+            car = (w.x[n, 1], w.y[n, 1])
+            bearing = np.arctan2(car[1] - lidar[1], car[0] - lidar[0]) - w.yaw[n, 0]
+            if all(_blocked(lidar, corner, walls) for corner in w.corners[n, 1]):
+                assert not seen[n, 0]
+                hidden += 1
+            elif (not _blocked(lidar, car, walls) and abs(np.angle(np.exp(1j * bearing))) < 1.2
+                  and np.hypot(car[0] - lidar[0], car[1] - lidar[1]) < 8
+                  and min(np.hypot(*(np.r_[e] - lidar)) for e in walls.reshape(-1, 2)) > 0.3):
+                assert seen[n, 0]
+                clear += 1
+        a, b = near_only.mirrored(), seen_only.mirrored()
+        assert not (b & ~a).any()
+        hidden_near += int((a & ~b).sum())
+        env.step(np.tile(np.array([0.2, 0.0], np.float32), (env.num_envs, 1)))
+    assert hidden > 0 and clear > 0 and hidden_near > 0
+    env.close()

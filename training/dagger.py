@@ -84,7 +84,7 @@ def mirror_teacher(tc, fast):
         raise ValueError(f"--expert mirror: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
-    return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families))
+    return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen)
 
 
 class _Stop:

@@ -54,12 +54,17 @@ class MirrorTeacher:
     :param anchor_families: families whose steps with a car near on the ego's *right* the
         imitation term labels with the policy's own action (:meth:`anchored`), e.g. the mirror
         pair ``cross-right``, so that the reflected skill does not spill onto the side it came from.
+    :param seen_only: label a near car only while it is in the ego's scan (FastWorld.seen_by_agent).
+        The corners of the intersection hide a crossing car until the ego is about 2 m from the
+        conflict point; before that the scans of a crossing from the left and from the right are
+        the same, and mirrored labels there teach the mirrored turn for both sides.
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
 
-    def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = ()):
-        self.policy, self.fast = policy, fast_env
+    def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = (),
+                 seen_only: bool = False):
+        self.policy, self.fast, self.seen_only = policy, fast_env, seen_only
         have = sorted({f.split("/")[-1] for w in fast_env.worlds if w.actors is not None
                        for f in w.scenario_families})
         for flag, names in (("--mirror-families", families), ("--anchor-families", anchor_families)):
@@ -86,8 +91,11 @@ class MirrorTeacher:
             dx, dy = w.x[:, 1:] - w.x[:, :1], w.y[:, 1:] - w.y[:, :1]
             c, s = np.cos(w.yaw[:, :1]), np.sin(w.yaw[:, :1])
             ahead, left = c * dx + s * dy, -s * dx + c * dy
-            near = (np.hypot(dx, dy) < NEAR_M) & (side * left > LEFT_M) & (ahead > -0.5)
-            out.append(m[w.scenario_index] & near.any(axis=1))
+            near = (np.hypot(dx, dy) < NEAR_M) & (side * left > LEFT_M) & (ahead > -0.5) & m[w.scenario_index, None]
+            if self.seen_only:  # and in the ego's scan, not behind a corner (the same scan on both sides)
+                envs = np.flatnonzero(near.any(axis=1))
+                near[envs] &= w.seen_by_agent(envs)
+            out.append(near.any(axis=1))
         return np.concatenate(out)
 
     def mirrored(self) -> np.ndarray:

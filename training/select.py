@@ -797,7 +797,7 @@ def _ablation_markdown() -> str:
                 "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {_shown(getattr(prev, k))} -> {_shown(getattr(tc, k))}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
                                                                           "bc_label_steps", "bc_grad_steps", "expert_commit_s",
-                                                                          "expert", "mirror_families", "anchor_families", "mirror_symmetric",
+                                                                          "expert", "mirror_families", "mirror_seen", "anchor_families", "mirror_symmetric",
                                                                           "mirror_augment", "steer_bound_coef", "sde_sample_freq", "hidden")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
             # a reset of the loaded policy's action std (None: kept as trained, not a change)

@@ -45,9 +45,9 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
                "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
                "sde_sample_freq", "hidden")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
-DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
+DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
-IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert", "mirror_families", "anchor_families",
+IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "expert", "mirror_families", "mirror_seen", "anchor_families",
                    "expert_horizon_s", "expert_commit_s", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
@@ -78,7 +78,11 @@ def add_stage_flags(p, names) -> None:
 
     for name in names:
         f = TrainConfig.model_fields[name]
-        p.add_argument("--" + name.replace("_", "-"), dest=name, type=_flag_type(f.annotation), help=f.description)
+        if f.annotation is bool:
+            p.add_argument("--" + name.replace("_", "-"), dest=name, action=argparse.BooleanOptionalAction,
+                           default=None, help=f.description)
+        else:
+            p.add_argument("--" + name.replace("_", "-"), dest=name, type=_flag_type(f.annotation), help=f.description)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
