@@ -491,6 +491,9 @@ class TrainConfig(Section):
     its own action there, the anchors, besides every mirrored step; 0: no anchors)."""
     bc_grad_steps: int = Field(20, ge=1)
     """overtake with bc_coef: imitation minibatches (batch_size) after each PPO update."""
+    bc_learning_rate: float | None = Field(None, gt=0)
+    """overtake with bc_coef: the imitation's own Adam on the actor at this learning rate (not
+    checkpointed: a resumed run starts it anew); None: PPO's optimizer and learning rate."""
 
 
 TRAIN_PRESETS: dict[str, dict] = {

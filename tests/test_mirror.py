@@ -220,3 +220,32 @@ def test_seen_cars_are_the_ones_in_line_of_sight_and_the_teacher_labels_only_tho
         env.step(np.tile(np.array([0.2, 0.0], np.float32), (env.num_envs, 1)))
     assert hidden > 0 and clear > 0 and hidden_near > 0
     env.close()
+
+
+def test_the_imitation_fit_can_use_its_own_optimizer(tmp_path, crossings):
+    """--bc-learning-rate: the fit steps an Adam of its own on the actor; PPO's optimizer state
+    and the critic stay as they were."""
+    import torch
+    from stable_baselines3 import PPO
+
+    from racecav.common.config import TrainConfig
+    from racecav.training.imitation_term import make_callback
+    from racecav.training.train import make_venv
+
+    tc = TrainConfig(preset="fast", n_steps=8, batch_size=32, n_epochs=1, bc_coef=1.0, bc_grad_steps=3,
+                     bc_label_steps=2, bc_learning_rate=1e-3, expert="mirror", mirror_families="left-to-right",
+                     init_from=ROW16, env=EnvConfig(n_envs=8, n_obstacles=0, scenarios=str(crossings),
+                                                    scenario_share=1.0, obs_stack=2, lidar="wide"))
+    venv = make_venv(tc, seed=5)
+    cb = make_callback(tmp_path, tc, venv, seed=0)
+    model = PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, device="cpu")
+    model.learn(64, callback=cb)
+    p = model.policy
+    steps = [s["step"].item() for s in p.optimizer.state.values()]
+    critic = [t.detach().clone() for t in p.mlp_extractor.value_net.parameters()]
+    actor = [t.detach().clone() for t in p.mlp_extractor.policy_net.parameters()]
+    cb._fit()
+    assert cb.opt is not p.optimizer and cb.opt.param_groups[0]["lr"] == 1e-3
+    assert [s["step"].item() for s in p.optimizer.state.values()] == steps
+    assert all(torch.equal(a, b) for a, b in zip(critic, p.mlp_extractor.value_net.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(actor, p.mlp_extractor.policy_net.parameters()))

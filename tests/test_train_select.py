@@ -136,3 +136,18 @@ def test_checkpoint_policy_is_the_shipped_policy_exported_from_it(tmp_path):
     shutil.copy(ck, tmp_path / "step_1.zip")
     with pytest.raises(FileNotFoundError, match="no run record"):
         checkpoint_policy(tmp_path / "step_1.zip")
+
+
+def test_paths_draws_a_checkpoint_and_refuses_an_unknown_scenario(tmp_path, capsys):
+    """`racecav train paths`: the figure and each scenario's success, from a run's checkpoint."""
+    from racecav.cli import main
+
+    ckpt = str(Path(__file__).resolve().parents[1] / "training/checkpoints/avoid-gsde-flow120/checkpoints/step_005005312.zip")
+    out = tmp_path / "paths.png"
+    assert main(["train", "paths", "--policy", ckpt, "--scenarios", "left-to-right,conflict-left-to-right",
+                 "--trials", "2", "--out", str(out)]) == 0
+    assert out.stat().st_size > 10_000
+    assert "left-to-right" in capsys.readouterr().out
+    assert main(["train", "paths", "--policy", ckpt, "--scenarios", "nope", "--trials", "1",
+                 "--out", str(tmp_path / "x.png")]) == 2
+    assert "nope" in capsys.readouterr().out and not (tmp_path / "x.png").exists()

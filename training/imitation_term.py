@@ -68,6 +68,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             self.label_at: set[int] = set()
             self.step_in_rollout = 0
             self.path = run_dir / "imitation.csv"
+            self.opt = None  # the fit's optimizer (made at the first fit, when the model exists)
 
         def _on_training_start(self) -> None:
             truncate_csv(self.path, self.model.num_timesteps, FIELDS)
@@ -122,6 +123,11 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             with torch.no_grad():
                 steer = np.clip(mean_action(p, norm(self.obs[k])).numpy()[:, 1], self.lo[1], self.hi[1])
             agree = float(np.mean(np.abs(steer - self.act[k, 1]) * self.car.steer_gain < STEER_TOL)) if count else float("nan")
+            if self.opt is None:
+                # PPO's Adam, or one of its own: Adam moves every weight by about its learning rate per
+                # step along a consistent gradient, and the imitation's is far more consistent than PPO's
+                self.opt = p.optimizer if tc.bc_learning_rate is None else torch.optim.Adam(
+                    [*p.mlp_extractor.policy_net.parameters(), *p.action_net.parameters()], lr=tc.bc_learning_rate)
             p.set_training_mode(True)
             losses = []
             for _ in range(tc.bc_grad_steps):
@@ -129,9 +135,10 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 loss = tc.bc_coef * imitation_loss(mean_action(p, norm(self.obs[j])),
                                                    torch.as_tensor(self.act[j]), lo, hi, scale)
                 p.optimizer.zero_grad()
+                self.opt.zero_grad()
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(p.parameters(), tc.max_grad_norm)
-                p.optimizer.step()
+                self.opt.step()
                 losses.append(float(loss.detach()) / tc.bc_coef)
             p.set_training_mode(False)
             append_csv(self.path, FIELDS, {"timesteps": self.model.num_timesteps, "labels": self.size,

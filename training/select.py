@@ -74,6 +74,14 @@ def add_subcommands(sub) -> None:
     p.add_argument("--checkpoint", default="best", help="best (from eval.csv) | latest | STEP")
     p.add_argument("--name", required=True, help="racing | default | reversed (or any file name)")
     p.set_defaults(stage="ship")
+    p = sub.add_parser("paths", help="draw a policy's paths through the intersection scenarios (PyBullet, "
+                       "selection seeds): where it turns, and which way")
+    p.add_argument("--policy", required=True, help="shipped policy name, .npz, or a run's checkpoint .zip")
+    p.add_argument("--scenarios", default="right-to-left,conflict-right-to-left,left-to-right,conflict-left-to-right",
+                   help="comma-separated intersection scenarios (common/data/scenarios)")
+    p.add_argument("--trials", type=int, default=20, help="trials drawn per scenario")
+    p.add_argument("--out", type=Path, required=True, help="the figure (.png)")
+    p.set_defaults(stage="paths")
     p = sub.add_parser("report", help="evaluate the shipped policies (>= 100 PyBullet trials per scenario) -> docs/training.md")
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--policies", default="racing,default,reversed,avoid")
@@ -82,7 +90,8 @@ def add_subcommands(sub) -> None:
 
 
 def run(args, cfg) -> int:
-    return {"select": select, "references": references, "ship": ship, "report": report}[args.train_cmd](args, cfg)
+    return {"select": select, "references": references, "ship": ship, "report": report,
+            "paths": draw_paths}[args.train_cmd](args, cfg)
 
 
 # ----------------------------------------------------------------------------------- evaluation
@@ -546,8 +555,33 @@ def report(args, cfg) -> int:
     return 0
 
 
-def _plot_paths(name: str, paths: dict) -> Path:
-    """Ego (coloured by outcome) and obstacle paths of the first trials of each scenario."""
+def draw_paths(args, cfg) -> int:
+    """``racecav train paths``: a policy's ego and obstacle paths through intersection scenarios."""
+    import torch
+
+    torch.set_num_threads(1)
+    try:
+        policy = named_policy(args.policy)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"racecav train paths: {e}")
+        return 2
+    paths, rates = {}, []
+    for sc in [s.strip() for s in args.scenarios.split(",") if s.strip()]:
+        try:
+            r = eval_scenario(policy, sc, args.trials, SELECT_SEED, record=args.trials)
+        except (FileNotFoundError, ValueError) as e:
+            print(f"racecav train paths: {e}")
+            return 2
+        paths[f"{sc} ({100 * r['success']:.0f} %)"] = r["paths"]
+        rates.append(f"{sc} {100 * r['success']:.0f} %")
+    out = _plot_paths(Path(args.policy).stem, paths, args.out)
+    print(f"wrote {out}: {', '.join(rates)} of {args.trials} trials (selection seeds)")
+    return 0
+
+
+def _plot_paths(name: str, paths: dict, out: Path | None = None) -> Path:
+    """Ego (coloured by outcome) and obstacle paths of the first trials of each scenario
+    (default figure: docs/img/training_paths_<name>.png)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -571,10 +605,12 @@ def _plot_paths(name: str, paths: dict) -> Path:
             for j in range(2, xy.shape[1], 2):
                 ax.plot(xy[:, j], xy[:, j + 1], color="tab:blue", lw=0.6, alpha=0.5)
         ax.set(title=f"{name}: {sc}", xlim=(-8.5, 8.5), ylim=(-8.5, 8.5), aspect="equal")
-    fig.suptitle("ego paths, first 10 trials: green success, red contact, orange no contact but "
+    n = max(len(t) for t in paths.values())
+    fig.suptitle(f"ego paths, first {n} trials: green success, red contact, orange no contact but "
                  "short of min progress; blue obstacle", fontsize=9)
     fig.tight_layout()
-    out = REPO / "docs" / "img" / f"training_paths_{name}.png"
+    out = Path(out) if out is not None else REPO / "docs" / "img" / f"training_paths_{name}.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
@@ -796,7 +832,7 @@ def _ablation_markdown() -> str:
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
                 "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {_shown(getattr(prev, k))} -> {_shown(getattr(tc, k))}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
-                                                                          "bc_label_steps", "bc_grad_steps", "expert_commit_s",
+                                                                          "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert_commit_s",
                                                                           "expert", "mirror_families", "mirror_seen", "anchor_families", "mirror_symmetric",
                                                                           "mirror_augment", "steer_bound_coef", "sde_sample_freq", "hidden")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
