@@ -117,10 +117,19 @@ def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_pa
     assert not np.allclose(MirroredPolicy(policy)(scans), policy(scans), atol=1e-3)
     out = tmp_path / "mirror.md"
     assert main(["train", "mirror", "--policy", "avoid", "--trials", "1", "--suite-episodes", "8", "--out", str(out),
-                 "--suite", str(crossings), "--paper-suite", str(crossings)]) == 0
+                 "--suite", str(crossings), "--paper-suite", str(crossings), "--mirror-families", "left-to-right"]) == 0
     rows = [r for r in out.read_text().splitlines() if r.startswith("| ") and not r.startswith("| driver")]
-    assert [r.split(" | ")[0] for r in rows] == ["| avoid", "| avoid, mirrored", "| *straight 1 m/s* (no evasion)",
-                                                 "| *straight, full throttle* (no evasion)"]
+    assert [r.split(" | ")[0] for r in rows] == [
+        "| avoid", "| avoid, mirrored", "| avoid until a car is near on its left, then mirrored (`--expert mirror`)",
+        "| avoid until a car is seen near on its left, then mirrored (`--expert mirror --mirror-seen`)",
+        "| *straight 1 m/s* (no evasion)", "| *straight, full throttle* (no evasion)"]
+    # the teachers read the fast world's cars: suite columns only, no PyBullet cells
+    for r in rows[2:4]:
+        cells = r.split(" | ")[1:]
+        assert cells[:6] == ["-"] * 6 and cells[6].endswith("%")
+    with pytest.raises(SystemExit, match="cross-left"):  # a family the suites lack
+        main(["train", "mirror", "--policy", "avoid", "--trials", "1", "--suite-episodes", "8",
+              "--suite", str(crossings), "--paper-suite", str(crossings)])
     with pytest.raises(SystemExit, match="--trials"):
         main(["train", "mirror", "--policy", "avoid", "--trials", "0"])
 

@@ -132,6 +132,22 @@ class MirroredPolicy:
         return mirror_action(self.policy(mirror_scans(obs, self.obs_stack)))
 
 
+class TeacherDriver:
+    """The mirror teacher as a driver in the fast world: the policy's own action, and its mirrored
+    action wherever :class:`MirrorTeacher` labels one (privileged: it reads the world's cars, so
+    only fast-world evaluations can run it; select.eval_suite_fast calls :meth:`bind`)."""
+
+    def __init__(self, policy, families: list[str], seen_only: bool):
+        self.policy, self.families, self.seen_only = policy, families, seen_only
+        self.teacher: MirrorTeacher | None = None
+
+    def bind(self, fast_env) -> None:
+        self.teacher = MirrorTeacher(self.policy, fast_env, self.families, seen_only=self.seen_only)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.teacher.labels(obs)[0]
+
+
 def add_subcommands(sub) -> None:
     p = sub.add_parser("mirror", help="a policy and its mirror image (scans and steering reflected) on the "
                        "selection split: how asymmetric its skill is (training/mirror.py)")
@@ -140,6 +156,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--suite-episodes", type=int, default=1024, help="fast-world episodes per suite (train split)")
     p.add_argument("--suite", default="conflicts", help="the conflict suite (name, folder or file) of the suite columns")
     p.add_argument("--paper-suite", default="paper-timed", help="the paper-timed suite (name, folder or file) of the last columns")
+    p.add_argument("--mirror-families", default="cross-left", help="the families the teacher rows mirror "
+                   "(comma-separated; the imitation term's --mirror-families)")
     p.add_argument("--out", type=Path, help="also write the table here (.md)")
     p.set_defaults(stage="mirror")
 
@@ -172,12 +190,23 @@ def mirror(args, cfg) -> int:
     md = getattr(policy, "metadata", {})
     env = EnvConfig(scenarios=args.suite, scenario_share=1.0, lidar=md.get("lidar", "paper"),
                     obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)
-    drivers = {f"{args.policy}": policy, f"{args.policy}, mirrored": MirroredPolicy(policy),
+    # the imitation term's teachers as drivers: own action, mirrored once a car is near on the left in
+    # a cross-left file (--mirror-seen: and in the scan); fast world only, they read the world's cars
+    fams = [f.strip() for f in args.mirror_families.split(",") if f.strip()]
+    teachers = {f"{args.policy} until a car is near on its left, then mirrored (`--expert mirror`)":
+                TeacherDriver(policy, fams, seen_only=False),
+                f"{args.policy} until a car is seen near on its left, then mirrored (`--expert mirror --mirror-seen`)":
+                TeacherDriver(policy, fams, seen_only=True)}
+    drivers = {f"{args.policy}": policy, f"{args.policy}, mirrored": MirroredPolicy(policy), **teachers,
                **{f"*{k}* (no evasion)": v for k, v in reference_drivers().items()}}
     rows = []
     for name, drv in tqdm(drivers.items(), desc="mirror", unit="driver"):
-        denv = env if name in (args.policy, f"{args.policy}, mirrored") else EnvConfig(scenarios=args.suite, scenario_share=1.0)
-        row = selection_cells(drv, denv, args.trials, args.suite_episodes, conflict=True)
+        denv = env if name in (args.policy, f"{args.policy}, mirrored", *teachers) else EnvConfig(scenarios=args.suite, scenario_share=1.0)
+        try:
+            row = (eval_suite_fast(drv, denv, args.suite_episodes) if name in teachers
+                   else selection_cells(drv, denv, args.trials, args.suite_episodes, conflict=True))
+        except ValueError as e:  # a --mirror-families family the suites lack
+            raise SystemExit(f"racecav train mirror: {e}") from None
         paper = eval_suite_fast(drv, denv.model_copy(update={"scenarios": args.paper_suite}), args.suite_episodes)
         row.update({"paper-timed_" + k[len("suite_"):]: v for k, v in paper.items() if k.startswith("suite_")})
         rows.append({"driver": name, **row})

@@ -187,6 +187,8 @@ def eval_suite_fast(policy, env_cfg, episodes: int, seed: int = SELECT_SEED) -> 
     # every file equally likely, whatever the run trained with (a curriculum is training only)
     env = FastVecEnv(n_envs=episodes, config=env_cfg.model_copy(update={"curriculum": False, "curriculum_boost": {}}),
                      scenario_share=1.0, seed=seed)
+    if hasattr(policy, "bind"):  # a driver that reads the world's cars (privileged: training/mirror.TeacherDriver)
+        policy.bind(env)
     obs = env.reset()
     names = np.concatenate([[w.scenarios[k].name for k in w.scenario_index] for w in env.worlds])
     done = np.zeros(env.num_envs, bool)
