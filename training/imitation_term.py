@@ -7,7 +7,7 @@ and pure imitation of it (dagger.py) did not reach PPO's level on the suite (doc
 rows 13-14). Here PPO keeps its objective and the planner's labels are an auxiliary loss, the
 usual way to combine the two (e.g. Rajeswaran et al. 2018, DAPG): after every PPO update,
 ``bc_grad_steps`` minibatches of the imitation loss of dagger.py times ``bc_coef`` go through
-PPO's own optimizer.
+PPO's own optimizer (or, with ``bc_learning_rate``, an Adam of their own on the actor).
 
 The planner costs about as much per call for 64 worlds as for one (its per-step overhead
 dominates), so it labels every world of the batch at ``bc_label_steps`` random steps of each
@@ -24,9 +24,10 @@ a ``--mirror-families`` scenario whose car is near on the ego's left), and its o
 ``--anchor-families`` scenario whose car is near on the ego's right. The mirrored labels pull the
 crossings from the left towards the reflection of the policy's crossings from the right; the
 others are meant to hold the rest where it was, beside PPO's own objective. Measured (docs/training.md,
-rows 34-37): the crossings from the left pass both timings, and those from the right follow them into
-the mirror, with or without either kind of anchor. Row 22 fitted the same labels without PPO (pure
-DAgger) and lost the conflicts.
+rows 34-41): the crossings from the left pass both timings, and those from the right follow them into
+the mirror, with or without either kind of anchor, a wider network (row 38), labels only where the
+car is in the scan (``--mirror-seen``, rows 39-41) or a fit of its own at a tenth of the learning
+rate (row 41). Row 22 fitted the same labels without PPO (pure DAgger) and lost the conflicts.
 """
 
 from __future__ import annotations

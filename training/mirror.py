@@ -12,6 +12,8 @@ action, so that DAgger (training/dagger.py) would fit one network to both: its s
 right, reflected onto the left, and everything else as it was. The teacher reads which family a
 world runs and where its cars are (privileged, training only); the fitted policy sees only its
 scans. Measured (docs/training.md, row 22): the fit does not keep everything else as it was.
+Driven itself (``racecav train mirror``'s teacher rows), the teacher fails most crossings from the
+left: the mirrored turn has to begin before the car is in view (rows 34-41 in docs/training.md).
 
 Mirroring the scan reverses the ray order of each stacked scan. The wide view's rays are not
 exactly symmetric about the heading (common/lidar.VIEWS: -168.5 to +167.5 paper increments), so
