@@ -44,10 +44,17 @@ def test_a_widened_policy_computes_what_the_narrow_one_did(tmp_path):
         std_w = wide.policy.get_distribution(obs).distribution.stddev
         std_n = narrow.policy.get_distribution(obs).distribution.stddev
     np.testing.assert_allclose(std_w.numpy(), std_n.numpy(), rtol=1e-4)
-    # the numpy path (and so the fused kernel, which takes its shapes from it) of the wider actor
+    # the numpy path and the fused kernel of the wider actor (no normalisation: inputs as given)
+    from racecav.common.lidar import LidarSpec
+    from racecav.services.policy.fused import FusedPolicy
+
     pol = NumpyPolicy(policy_arrays_from_sb3(wide), {})
-    np.testing.assert_allclose(np.stack([pol(o) for o in obs[:32].numpy()]),
-                               np.clip(mean_action(wide.policy, obs[:32]).detach().numpy(), -1, 1), atol=1e-5)
+    want = np.clip(mean_action(wide.policy, obs[:32]).detach().numpy(), -1, 1)
+    np.testing.assert_allclose(np.stack([pol(o) for o in obs[:32].numpy()]), want, atol=1e-5)
+    ranges = torch.as_tensor(np.random.default_rng(2).uniform(0.1, 10.0, (32, 338)), dtype=torch.float32)
+    fused = FusedPolicy(pol, LidarSpec(range_min=0.05, range_max=12.0))  # limits that clip none of these
+    np.testing.assert_allclose(np.array([fused(r) for r in ranges.numpy()]),
+                               np.clip(mean_action(wide.policy, ranges).detach().numpy(), -1, 1), atol=1e-5)
 
 
 def test_widen_refuses_a_narrower_width():

@@ -12,8 +12,9 @@ action, so that DAgger (training/dagger.py) would fit one network to both: its s
 right, reflected onto the left, and everything else as it was. The teacher reads which family a
 world runs and where its cars are (privileged, training only); the fitted policy sees only its
 scans. Measured (docs/training.md, row 22): the fit does not keep everything else as it was.
-Driven itself (``racecav train mirror``'s teacher rows), the teacher fails most crossings from the
-left: the mirrored turn has to begin before the car is in view (rows 34-41 in docs/training.md).
+Driven itself (``racecav train mirror``'s teacher rows), the teacher fails the crossings from the
+left far more often than the policy or its mirror image alone: the mirrored turn has to begin
+before the car is in view (rows 34-41 in docs/training.md).
 
 Mirroring the scan reverses the ray order of each stacked scan. The wide view's rays are not
 exactly symmetric about the heading (common/lidar.VIEWS: -168.5 to +167.5 paper increments), so
@@ -207,9 +208,9 @@ def mirror(args, cfg) -> int:
         try:
             row = (eval_suite_fast(drv, denv, args.suite_episodes) if name in teachers
                    else selection_cells(drv, denv, args.trials, args.suite_episodes, conflict=True))
+            paper = eval_suite_fast(drv, denv.model_copy(update={"scenarios": args.paper_suite}), args.suite_episodes)
         except ValueError as e:  # a --mirror-families family the suites lack
             raise SystemExit(f"racecav train mirror: {e}") from None
-        paper = eval_suite_fast(drv, denv.model_copy(update={"scenarios": args.paper_suite}), args.suite_episodes)
         row.update({"paper-timed_" + k[len("suite_"):]: v for k, v in paper.items() if k.startswith("suite_")})
         rows.append({"driver": name, **row})
     suites = "" if (args.suite, args.paper_suite) == ("conflicts", "paper-timed") else f" --suite {args.suite} --paper-suite {args.paper_suite}"
