@@ -1348,7 +1348,12 @@ def _ablation_markdown() -> str:
           "the conflict-timed head-on at 81-91 %, the suite's cross-left at 62-70 %; at most 6 of the 8 targets. "
           "Capacity alone does not move the weak cell either. Stopped, rejected.", ""]
     L += ["![the paths of row 38](img/training_paths_mirrorbc_wide.png)", "",
-          "![the paths of row 31](img/training_paths_gsde_flow120.png)", ""]
+          "Row 38's last checkpoint: `racecav train paths --policy training/checkpoints/avoid-gsde-mirrorbc-wide/latest.zip "
+          "--trials 10 --out docs/img/training_paths_mirrorbc_wide.png`.", "",
+          "![the paths of row 31](img/training_paths_gsde_flow120.png)", "",
+          "Row 31 at 5 M (the shipped avoid): `racecav train paths --policy "
+          "training/checkpoints/avoid-gsde-flow120/checkpoints/step_005005312.zip --trials 10 --out "
+          "docs/img/training_paths_gsde_flow120.png`.", ""]
     mirror_md = COMMITTED / "mirror-avoid.md"
     if mirror_md.is_file():
         L += ["### Row 16 and its mirror image", "",
