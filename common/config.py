@@ -387,6 +387,10 @@ class EnvConfig(Section):
     flow_reward: float = Field(0.0, ge=0)
     """Scenario episodes of the fast VecEnv: reward per metre the ego moves along the direction
     of travel of a near crossing car (negative against it; training/flow_reward.py). 0: off."""
+    hold_heading: float = Field(0.0, ge=0)
+    """Scenario episodes of the fast VecEnv: reward -hold_heading x |heading error| (rad, from
+    the ego's road) at each step where no other car is in the ego's scan (training/hold_heading.py),
+    so an evasion answers a car the ego sees. 0: off."""
     brake_below: float | None = Field(None, gt=-1, le=0)
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The

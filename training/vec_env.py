@@ -26,6 +26,7 @@ from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
 from racecav.training.flow_reward import flow_reward, flow_weights
+from racecav.training.hold_heading import HoldHeading
 
 
 class FamilyCurriculum:
@@ -130,6 +131,8 @@ class FastVecEnv(VecEnv):
 
             self.lane_keeping = LaneKeeping(self.worlds, self.slices, self.settings.lane_keeping,
                                             self.settings.lane_keeping_horizon_s)
+        self.hold_heading = (HoldHeading(n, self.settings.hold_heading)
+                             if self.settings.hold_heading and self.is_scenario.any() else None)
         if seed is not None:
             self.seed(seed)
 
@@ -146,6 +149,8 @@ class FastVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.a_prev[:] = 0.0
+        if self.hold_heading is not None:
+            self.hold_heading.seen[:] = False
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._stack[:] = obs[:, None]
         return self._stacked()
@@ -162,6 +167,7 @@ class FastVecEnv(VecEnv):
         # from the state the actions are taken in
         lane = self.lane_keeping.penalty(self._actions) if self.lane_keeping is not None else None
         flow = [] if self.settings.flow_reward else None
+        hold = [] if self.hold_heading is not None else None
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
             if flow is not None:  # the crossing cars' flow before the step, the ego's motion over it
@@ -172,6 +178,8 @@ class FastVecEnv(VecEnv):
             dprog.append(w.progress() - p0)
             if flow is not None:
                 flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
+            if hold is not None:  # the state the step led to: its heading, and what the new scan shows
+                hold.append(self.hold_heading.step(w, sl))
             obs_parts.append(o)
             thr.append(t)
             a_d.append(d)
@@ -190,6 +198,8 @@ class FastVecEnv(VecEnv):
             rewards = rewards + lane
         if flow is not None:
             rewards = rewards + np.concatenate(flow)
+        if hold is not None:
+            rewards = rewards + np.concatenate(hold)
         self.a_prev[:] = a_delta
         self._stack[:, 1:] = self._stack[:, :-1]
         self._stack[:, 0] = obs
@@ -212,6 +222,8 @@ class FastVecEnv(VecEnv):
                     self._stack[sl][idx] = w.agent_obs()[idx][:, None]  # a new episode: no history
             obs = self._stacked()
             self.a_prev[dones] = 0.0
+            if self.hold_heading is not None:
+                self.hold_heading.reset(dones)
             if self.curriculum is not None:
                 self.curriculum.update()
         return obs, rewards, dones, infos

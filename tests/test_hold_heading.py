@@ -1,0 +1,58 @@
+"""The hold-heading reward term of ``racecav train overtake --hold-heading W`` (training/hold_heading.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from racecav.common.config import EnvConfig
+from racecav.common.scenario import SCENARIOS_DIR
+from racecav.training.env import OvertakeEnv
+from racecav.training.vec_env import FastVecEnv
+
+W = 10.0
+
+
+def _env(hold: float) -> FastVecEnv:
+    # the paper's left-to-right: the corners hide the crossing car for the first metres
+    return FastVecEnv(config=EnvConfig(n_envs=8, scenarios=str(SCENARIOS_DIR / "left-to-right.toml"),
+                                       scenario_share=1.0, n_obstacles=0, lidar="wide", hold_heading=hold), seed=4)
+
+
+def test_heading_error_is_charged_until_a_car_has_been_in_view():
+    """Against the same worlds without the term: the reward differs by -W x |heading error| at
+    each step before the ego's scan first shows the car (FastWorld.seen_by_agent), by nothing
+    from then on, even once the car is out of view again; a new episode starts unseen again."""
+    env, ref = _env(W), _env(0.0)
+    env.reset(), ref.reset()
+    (w,) = env.worlds
+    # rows 0-3 hold their road, rows 4-7 swerve left and back before the car can be seen
+    a = np.tile(np.array([1.0, 0.0], np.float32), (8, 1))
+    charged = np.zeros(8)
+    seen_then_hidden = 0
+    latched = np.zeros(8, dtype=bool)
+    for k in range(40):
+        a[4:, 1] = 1.0 if k < 3 else -1.0 if k < 6 else 0.0
+        _, r, d, _ = env.step(a)
+        _, r0, d0, _ = ref.step(a)
+        assert np.array_equal(d, d0)
+        if d.any():  # the first episode ends (past the crossing): new episodes start unseen
+            assert k > 20 and not env.hold_heading.seen[d].any()
+            break
+        err = np.abs(np.angle(np.exp(1j * (w.yaw[:, 0] - w.start_pose[:, 2]))))
+        seen_now = w.seen_by_agent(np.arange(8))[:, 0]
+        latched |= seen_now
+        assert np.array_equal(env.hold_heading.seen, latched)
+        expected = np.where(latched, 0.0, -W * err)
+        assert np.allclose(r - r0, expected, atol=1e-4)
+        charged += r - r0
+        seen_then_hidden += int((latched & ~seen_now).sum())
+    assert latched.all()
+    assert (charged[4:] < -1.0).all() and (charged[:4] > -0.5).all()
+    assert seen_then_hidden > 0
+    env.close(), ref.close()
+
+
+def test_the_term_is_refused_outside_the_fast_vec_env():
+    with pytest.raises(ValueError, match="hold_heading"):
+        OvertakeEnv(config=EnvConfig(hold_heading=1.0))
