@@ -192,6 +192,40 @@ def _blocked(p, q, walls) -> bool:
                for w in walls)
 
 
+def test_track_teacher_labels_full_throttle_tracking_where_a_seen_car_is_near_on_the_left(crossings):
+    """--expert track: on the steps the mirror teacher would mirror (seen_only), the label is full
+    throttle and the tracking steer of the ego's road (training/expert.tracking_steer); the
+    policy's own action elsewhere."""
+    from racecav.training.expert import tracking_steer
+
+    policy = load_policy("avoid")
+    env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2), seed=3)
+    teacher = MirrorTeacher(policy, env, ["left-to-right"], seen_only=True, relabel="track")
+    with pytest.raises(ValueError, match="relabel"):
+        MirrorTeacher(policy, env, ["left-to-right"], relabel="straight")
+    env.reset()
+    (world,) = env.worlds
+    fam = np.array(world.scenario_families)[world.scenario_index]
+    ever = np.zeros(env.num_envs, bool)
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        raw = env._stacked()
+        labels, mask = teacher.labels(raw)
+        assert not mask[fam != "left-to-right"].any()
+        assert np.array_equal(mask, teacher.mirrored())
+        assert np.array_equal(labels[~mask], policy(raw)[~mask])
+        if mask.any():
+            assert (labels[mask, 0] == 1.0).all()
+            assert np.allclose(labels[mask, 1], tracking_steer(world)[mask])
+            assert world.seen_by_agent(np.flatnonzero(mask)).any(axis=1).all()
+        ever |= mask
+        # a weaving ego: the tracking steer is not zero
+        env.step(np.stack([np.full(env.num_envs, 0.2), rng.uniform(-0.3, 0.3, env.num_envs)], 1).astype(np.float32))
+    assert ever[fam == "left-to-right"].any()
+    env.close()
+
+
 def test_seen_cars_are_the_ones_in_line_of_sight_and_the_teacher_labels_only_those(crossings):
     """FastWorld.seen_by_agent against plain line of sight: a car whose four corners are all
     behind a wall is never seen, one whose centre is in clear view well inside the field of view

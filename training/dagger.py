@@ -84,7 +84,8 @@ def mirror_teacher(tc, fast):
         raise ValueError(f"--expert mirror: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
-    return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen)
+    return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
+                         relabel="track" if tc.expert == "track" else "mirror")
 
 
 class _Stop:
@@ -110,7 +111,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    if tc.expert == "mirror":
+    if tc.expert in ("mirror", "track"):
         experts, teacher = [], mirror_teacher(tc, fast)
     else:
         experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds], None

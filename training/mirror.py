@@ -61,15 +61,20 @@ class MirrorTeacher:
         The corners of the intersection hide a crossing car until the ego is about 2 m from the
         conflict point; before that the scans of a crossing from the left and from the right are
         the same, and mirrored labels there teach the mirrored turn for both sides.
+    :param relabel: mirror: the mirrored action on those steps; track: plain tracking of the
+        ego's road at full throttle (``--expert track``: e.g. ``paper-timed/cross-left``, the crossing
+        a straight ego passes ahead of, which the policy turns into).
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
 
     def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = (),
-                 seen_only: bool = False):
-        self.policy, self.fast, self.seen_only = policy, fast_env, seen_only
-        have = sorted({f.split("/")[-1] for w in fast_env.worlds if w.actors is not None
-                       for f in w.scenario_families})
+                 seen_only: bool = False, relabel: str = "mirror"):
+        if relabel not in ("mirror", "track"):
+            raise ValueError(f"relabel: mirror | track, not {relabel!r}")
+        self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel
+        qualified = {f for w in fast_env.worlds if w.actors is not None for f in w.scenario_families}
+        have = sorted(qualified | {f.split("/")[-1] for f in qualified})
         for flag, names in (("--mirror-families", families), ("--anchor-families", anchor_families)):
             unknown = [f for f in names if f not in have]
             if (flag == "--mirror-families" and not names) or unknown:
@@ -80,7 +85,9 @@ class MirrorTeacher:
         self._anchored = self._per_file(set(anchor_families))
 
     def _per_file(self, names: set[str]) -> list[np.ndarray | None]:
-        return [None if w.actors is None else np.array([f.split("/")[-1] in names for f in w.scenario_families])
+        # a name matches its family in every suite (cross-left) or in one (paper-timed/cross-left)
+        return [None if w.actors is None else np.array([f in names or f.split("/")[-1] in names
+                                                         for f in w.scenario_families])
                 for w in self.fast.worlds]
 
     def _near(self, per_file: list[np.ndarray | None], side: float) -> np.ndarray:
@@ -114,12 +121,20 @@ class MirrorTeacher:
         return self._near(self._anchored, -1.0)
 
     def labels(self, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(labels (N, 2), mirrored (N,)) for the raw (not normalised) stacked scans ``raw_obs``."""
+        """(labels (N, 2), relabelled (N,)) for the raw (not normalised) stacked scans ``raw_obs``:
+        on the :meth:`mirrored` steps the mirrored action (relabel mirror) or plain tracking of
+        the ego's road at full throttle (relabel track, training/expert.tracking_steer)."""
         mask = self.mirrored()
         out = self.policy(raw_obs).copy()
-        if mask.any():
+        if mask.any() and self.relabel == "mirror":
             m = mirror_scans(raw_obs[mask], self.policy.obs_stack)
             out[mask] = mirror_action(self.policy(m))
+        elif mask.any():
+            from racecav.training.expert import tracking_steer
+
+            steer = np.concatenate([tracking_steer(w) if w.actors is not None else np.zeros(w.n_envs)
+                                    for w in self.fast.worlds])
+            out[mask] = np.stack([np.ones(int(mask.sum())), steer[mask]], axis=1)
         return out, mask
 
 
