@@ -391,6 +391,10 @@ class EnvConfig(Section):
     """Scenario episodes of the fast VecEnv: reward -hold_heading x |heading error| (rad, from
     the ego's road) at each step where no other car is in the ego's scan (training/hold_heading.py),
     so an evasion answers a car the ego sees. 0: off."""
+    proximity_penalty: float = Field(0.0, ge=0)
+    """Scenario episodes of the fast VecEnv: reward -proximity_penalty x (1.2 m - d) at each step
+    where the nearest other car is at a centre distance d < 1.2 m (training/proximity.py), so
+    every pass pays for its margin, not only the ones that touch. 0: off."""
     brake_below: float | None = Field(None, gt=-1, le=0)
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The

@@ -27,6 +27,7 @@ from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
 from racecav.training.flow_reward import flow_reward, flow_weights
 from racecav.training.hold_heading import HoldHeading
+from racecav.training.proximity import proximity_penalty
 
 
 class FamilyCurriculum:
@@ -168,6 +169,7 @@ class FastVecEnv(VecEnv):
         lane = self.lane_keeping.penalty(self._actions) if self.lane_keeping is not None else None
         flow = [] if self.settings.flow_reward else None
         hold = [] if self.hold_heading is not None else None
+        near = [] if self.settings.proximity_penalty else None
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
             if flow is not None:  # the crossing cars' flow before the step, the ego's motion over it
@@ -180,6 +182,8 @@ class FastVecEnv(VecEnv):
                 flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
             if hold is not None:  # the state the step led to: its heading, and what the new scan shows
                 hold.append(self.hold_heading.step(w, sl))
+            if near is not None:
+                near.append(proximity_penalty(self.settings.proximity_penalty, w))
             obs_parts.append(o)
             thr.append(t)
             a_d.append(d)
@@ -200,6 +204,8 @@ class FastVecEnv(VecEnv):
             rewards = rewards + np.concatenate(flow)
         if hold is not None:
             rewards = rewards + np.concatenate(hold)
+        if near is not None:
+            rewards = rewards + np.concatenate(near)
         self.a_prev[:] = a_delta
         self._stack[:, 1:] = self._stack[:, :-1]
         self._stack[:, 0] = obs

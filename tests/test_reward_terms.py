@@ -1,4 +1,5 @@
-"""The hold-heading reward term of ``racecav train overtake --hold-heading W`` (training/hold_heading.py)."""
+"""The reward terms of ``racecav train overtake --hold-heading W`` (training/hold_heading.py) and
+``--proximity-penalty W`` (training/proximity.py)."""
 
 from __future__ import annotations
 
@@ -56,3 +57,31 @@ def test_heading_error_is_charged_until_a_car_has_been_in_view():
 def test_the_term_is_refused_outside_the_fast_vec_env():
     with pytest.raises(ValueError, match="hold_heading"):
         OvertakeEnv(config=EnvConfig(hold_heading=1.0))
+
+
+def test_proximity_penalty_is_the_margin_to_the_nearest_car_within_reach():
+    """--proximity-penalty W: against the same worlds without it, the reward differs by
+    -W x (NEAR_M - d) at the steps where the nearest car's centre is d < NEAR_M away, by nothing
+    elsewhere; a straight ego meets the paper's crossing car head-on, so both cases occur."""
+    from racecav.training.proximity import NEAR_M
+
+    def env(w):
+        return FastVecEnv(config=EnvConfig(n_envs=4, scenarios=str(SCENARIOS_DIR / "left-to-right.toml"),
+                                           scenario_share=1.0, n_obstacles=0, lidar="wide", proximity_penalty=w), seed=4)
+
+    e, ref = env(W), env(0.0)
+    e.reset(), ref.reset()
+    (w,) = e.worlds
+    a = np.tile(np.array([0.22, 0.0], np.float32), (4, 1))  # 1 m/s: on a collision course (the paper's timing)
+    near = far = 0
+    for _ in range(60):
+        _, r, d, _ = e.step(a)
+        _, r0, _, _ = ref.step(a)
+        if d.any():
+            break
+        dist = np.hypot(w.x[:, 1] - w.x[:, 0], w.y[:, 1] - w.y[:, 0])
+        assert np.allclose(r - r0, -W * np.clip(NEAR_M - dist, 0, None), atol=1e-4)
+        near += int((dist < NEAR_M).sum())
+        far += int((dist >= NEAR_M).sum())
+    assert d.any() and near > 0 and far > 0
+    e.close(), ref.close()
