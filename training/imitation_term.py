@@ -28,6 +28,9 @@ rows 34-41): the crossings from the left pass both timings, and those from the r
 the mirror, with or without either kind of anchor, a wider network (row 38), labels only where the
 car is in the scan (``--mirror-seen``, rows 39-41) or a fit of its own at a tenth of the learning
 rate (row 41). Row 22 fitted the same labels without PPO (pure DAgger) and lost the conflicts.
+``--expert track`` labels the same steps with plain tracking of the ego's road at full throttle
+instead (row 44, on the paper-timed crossings from the left): the straight pass spread to every
+crossing, and the conflict-timed ones were lost.
 """
 
 from __future__ import annotations
