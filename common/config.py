@@ -389,8 +389,8 @@ class EnvConfig(Section):
     of travel of a near crossing car (negative against it; training/flow_reward.py). 0: off."""
     hold_heading: float = Field(0.0, ge=0)
     """Scenario episodes of the fast VecEnv: reward -hold_heading x |heading error| (rad, from
-    the ego's road) at each step where no other car is in the ego's scan (training/hold_heading.py),
-    so an evasion answers a car the ego sees. 0: off."""
+    the ego's road) at each step until a car has been in the ego's scan (latched per episode;
+    training/hold_heading.py), so an evasion answers a car the ego sees. 0: off."""
     proximity_penalty: float = Field(0.0, ge=0)
     """Scenario episodes of the fast VecEnv: reward -proximity_penalty x (1.2 m - d) at each step
     where the nearest other car is at a centre distance d < 1.2 m (training/proximity.py), so
@@ -482,7 +482,7 @@ class TrainConfig(Section):
     family of every suite, cross-left, or of one, paper-timed/cross-left) whose steps with a car
     near on the ego's left are relabelled (mirrored action, or tracking)."""
     mirror_seen: bool = False
-    """dagger or bc_coef with expert mirror: label a mirrored (or anchored) step only while its car
+    """dagger or bc_coef with expert mirror or track: label a relabelled (or anchored) step only while its car
     is in the ego's scan, not hidden by the intersection's corners (training/mirror.py)."""
     anchor_families: str = ""
     """overtake with bc_coef and expert mirror: families (comma-separated) whose steps with a car
