@@ -1375,7 +1375,7 @@ def _ablation_markdown() -> str:
           "episode where the nearest other car's centre is d < 1.2 m away. 6.1 M samples in 24 min: scores "
           "0.90-0.945 over 7 checkpoints (0.945 at 2 M, the highest of any row then: conflict-timed "
           "100 / 95 / 99 %, paper-timed 100 / 96 / 87 %, but the suite's cross-left at 61 %), the paper-timed "
-          "left-to-right at 70-87 %, the lowest suite family at 61-77 %; at most 6 of the 8 targets. The pass "
+          "left-to-right at 70-87 %, the lowest suite family at 61-77 %; 7 of the 8 targets at 4 and 6 M (paper-timed left-to-right 75 and 72 %). The pass "
           "does not widen (2 M: median 0.62 m between the centres over 40 trials, as row 31). Rejected. "
           "Row 46 (avoid-gsde-clear100) is row 45 at five times the weight (`--proximity-penalty 100`). "
           "15.6 M samples in 56 min (14 checkpoints evaluated): scores 0.92-0.948 (0.948 at 6 and 9 M: "
