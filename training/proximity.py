@@ -3,10 +3,10 @@
 
 Why: row 31 (the shipped avoid) passes the paper-timed crossing from the left in 80-83 % of the
 trials by turning left into the crossing road and squeezing past the car coming down it: over 40
-PyBullet trials (selection seeds) the 35 that pass keep a median 0.62 m between the centres, and
-the 5 it loses are the same pass, touching at 0.36-0.47 m (docs/training.md, rows 43-46). A
-contact ends the episode, so PPO sees the margin only in the trials that fail; this
-term pays for it in every pass: -W x (NEAR_M - d) per step for the nearest other car at a centre
+PyBullet trials (seeds 9000-9039, apart from the test and selection seeds) the 35 that pass keep
+a median 0.62 m between the centres, and the 5 it loses are the same pass, touching at
+0.36-0.47 m (docs/training.md, rows 43-46). A contact ends the episode, so PPO sees the margin
+only in the trials that fail; this term pays for it in every pass: -W x (NEAR_M - d) per step for the nearest other car at a centre
 distance d < NEAR_M (contact is at 0.30 m side by side, 0.55 m end to end). It reads the cars'
 positions (privileged, training only, like flow_reward.py); the policy sees only its scans.
 Scenario episodes only: the traffic episodes' laps pass cars closely by design.
