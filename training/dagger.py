@@ -73,15 +73,15 @@ def imitation_loss(pred, label, lo, hi, scale):
 
 
 def mirror_teacher(tc, fast):
-    """The ``--expert mirror`` teacher: the frozen ``init_from`` policy (with its normalisation)
-    under the run's view settings, mirrored in the ``mirror_families`` scenarios."""
+    """The ``--expert mirror`` (or ``track``) teacher: the frozen ``init_from`` policy (with its
+    normalisation) under the run's view settings, relabelled in the ``mirror_families`` scenarios."""
     from racecav.training.mirror import MirrorTeacher
     from racecav.training.select import policy_from_checkpoint
 
     env = tc.env
     policy = policy_from_checkpoint(Path(tc.init_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
     if policy.obs_dim != fast.observation_space.shape[0]:
-        raise ValueError(f"--expert mirror: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
+        raise ValueError(f"--expert {tc.expert}: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
     return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,

@@ -375,7 +375,7 @@ def open_run(args, cfg, run_dir: Path):
               "the imitation keeps that policy's input statistics")
         return None
     if tc.bc_coef > 0 and tc.expert in ("mirror", "track") and not tc.init_from:
-        print("racecav train: --bc-coef with --expert mirror needs --init-from (the frozen teacher)")
+        print(f"racecav train: --bc-coef with --expert {tc.expert} needs --init-from (the frozen teacher)")
         return None
     if tc.bc_coef > 0 and tc.expert == "planner" and tc.bc_label_steps < 1:
         print("racecav train: --bc-coef with the planner needs --bc-label-steps >= 1 (its only labels)")
