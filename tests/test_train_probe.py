@@ -20,7 +20,7 @@ def _probe(tmp_path, sources: str, name: str) -> list[dict]:
     out = tmp_path / f"{name}.csv"
     src = ",".join(str(SCENARIOS_DIR / f"{s}.toml") for s in sources.split(","))
     assert main(["train", "probe", "--policy", ROW16, "--sources", src, "--family", "", "--n", "512", "--distances", "1.5",
-                 "--strides", "0,1", "--out", str(out)]) == 0
+                 "--strides", "0,1", "--late-n", "0", "--out", str(out)]) == 0  # late_decision: its own test
     with out.open() as f:
         return list(csv.DictReader(f))
 
