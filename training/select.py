@@ -1391,7 +1391,8 @@ def _ablation_markdown() -> str:
           "gsde-clear100 --steps 60e6` after copying training/checkpoints/avoid-gsde-clear100 to runs/. "
           "Resumed the next session to 54.1 M (evaluated at 16-30 M every 2 M, 32 and 33 M): the trade holds "
           "and drifts back. 16-18 M: paper-timed left-to-right 94-98 %, conflict-timed head-on 87-89 % and "
-          "left-to-right 86-89 %. 20-33 M: paper-timed left-to-right 78-88 %, conflict-timed head-on 89-100 % and left-to-right 83-98 %. "
+          "left-to-right 86-89 %. 20-33 M: paper-timed left-to-right 78-88 %, conflict-timed head-on 89-100 % "
+          "and left-to-right 83-98 %. "
           "Suite 89-92 %, cross-left 64-74 %, scores 0.914-0.936, never above 7 of the 8 targets. Rejected.", ""]
     L += ["![the paths of row 38](img/training_paths_mirrorbc_wide.png)", "",
           "Row 38's last checkpoint: `racecav train paths --policy training/checkpoints/avoid-gsde-mirrorbc-wide/latest.zip "
