@@ -456,6 +456,9 @@ class TrainConfig(Section):
     hidden: int = Field(64, ge=2)
     """Units in each of the two hidden layers of actor and critic (64: the paper's MlpPolicy). A
     narrower ``init_from`` policy is widened with its function kept (training/widen.py)."""
+    privileged_critic: bool = False
+    """The critic also reads the other cars' positions and velocities (training only; the actor,
+    the policy that ships, reads only the scans: training/privileged.py)."""
     steer_bound_coef: float = Field(0.0, ge=0)
     """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
     actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""

@@ -111,7 +111,8 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: floa
     if vn.is_file():
         with vn.open("rb") as f:
             norm = pickle.load(f)
-        arrays.update(obs_mean=norm.obs_rms.mean, obs_var=norm.obs_rms.var,
+        n_in = arrays["w0"].shape[0]  # the actor's inputs (a privileged critic reads more)
+        arrays.update(obs_mean=norm.obs_rms.mean[:n_in], obs_var=norm.obs_rms.var[:n_in],
                       obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
     return NumpyPolicy(arrays, {"obs_stack": obs_stack, "obs_stride": obs_stride, "brake_below": brake_below,
                                 "lidar": lidar})

@@ -43,7 +43,7 @@ log = logging.getLogger("racecav.train")
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
                "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
-               "sde_sample_freq", "hidden")
+               "sde_sample_freq", "hidden", "privileged_critic")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
@@ -219,7 +219,7 @@ def make_venv(tc, seed: int):
 
     from racecav.training.vec_env import FastVecEnv
 
-    return VecMonitor(FastVecEnv(config=tc.env, seed=seed))
+    return VecMonitor(FastVecEnv(config=tc.env, seed=seed, privileged=tc.privileged_critic))
 
 
 def _ppo_kwargs(tc) -> dict:
@@ -228,6 +228,8 @@ def _ppo_kwargs(tc) -> dict:
     policy_kwargs = dict(net_arch=[tc.hidden, tc.hidden], activation_fn=torch.nn.Tanh)
     if tc.mirror_symmetric:
         policy_kwargs["obs_stack"] = tc.env.obs_stack
+    if tc.privileged_critic:
+        policy_kwargs["actor_inputs"] = tc.env.obs_stack * VIEWS[tc.env.lidar].n_rays
     sde = {} if tc.sde_sample_freq is None else dict(use_sde=True, sde_sample_freq=tc.sde_sample_freq)
     return dict(**sde, n_steps=tc.n_steps, batch_size=tc.batch_size, n_epochs=tc.n_epochs, gamma=tc.gamma,
                 learning_rate=tc.learning_rate, gae_lambda=tc.gae_lambda, clip_range=tc.clip_range,
@@ -252,7 +254,12 @@ def _algorithm(tc):
 
 
 def _policy_class(tc):
-    """SB3's MlpPolicy, or its mirror-symmetric version (training/symmetric.py)."""
+    """SB3's MlpPolicy, its mirror-symmetric version (training/symmetric.py) or its version with a
+    privileged critic (training/privileged.py)."""
+    if tc.privileged_critic:
+        from racecav.training.privileged import PrivilegedCriticPolicy
+
+        return PrivilegedCriticPolicy
     if not tc.mirror_symmetric:
         return "MlpPolicy"
     from racecav.training.symmetric import MirrorMlpPolicy
@@ -367,6 +374,10 @@ def open_run(args, cfg, run_dir: Path):
         print("racecav train: --sde-sample-freq (gSDE) explores in PPO's rollouts, with SB3's MlpPolicy "
               "(use it with racecav train overtake, without --mirror-symmetric)")
         return None
+    if tc.privileged_critic and (tc.stage == "dagger" or tc.mirror_symmetric or tc.mirror_augment or tc.bc_coef > 0):
+        print("racecav train: --privileged-critic is a PPO critic for racecav train overtake's rollouts, without "
+              "--mirror-symmetric, --mirror-augment and --bc-coef (their observations are the scans alone)")
+        return None
     if tc.stage == "dagger" and tc.mirror_augment:
         print("racecav train dagger: --mirror-augment reflects PPO's rollouts (use it with racecav train overtake)")
         return None
@@ -429,6 +440,8 @@ def init_normalization(venv, tc):
     """Start a new run's VecNormalize ``venv`` from the statistics beside ``tc.init_from`` (if
     any): the weights expect the statistics they were trained with; a 1-scan policy's serve every
     scan of a stack."""
+    import numpy as np
+
     init_norm = Path(tc.init_from).with_suffix(".vecnorm.pkl") if tc.init_from else None
     if init_norm is None or not init_norm.is_file():
         return venv
@@ -442,6 +455,10 @@ def init_normalization(venv, tc):
     # a new view's outer rays start from the nearest old ray's statistics: a smaller count lets
     # them adapt within ~1 M samples
     venv.obs_rms.count = old.obs_rms.count if src_view == view else min(old.obs_rms.count, 1e5)
+    extra = venv.observation_space.shape[0] - venv.obs_rms.mean.shape[0]
+    if extra > 0:  # the privileged critic's inputs: scaled to order 1 already (training/privileged.py)
+        venv.obs_rms.mean = np.concatenate([venv.obs_rms.mean, np.zeros(extra)])
+        venv.obs_rms.var = np.concatenate([venv.obs_rms.var, np.ones(extra)])
     return venv
 
 
@@ -540,6 +557,14 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
         from racecav.training.widen import widen
 
         src = widen(src, width)
+    critic = "mlp_extractor.value_net.0.weight"
+    # a privileged critic reads more than the scans (training/privileged.py): those extra inputs
+    # start at zero weight, so the critic starts as the source's
+    extra = dst[critic].shape[1] - dst["mlp_extractor.policy_net.0.weight"].shape[1]
+    if extra and src[critic].shape[1] == src["mlp_extractor.policy_net.0.weight"].shape[1]:
+        dst = {**dst, critic: dst[critic][:, :-extra]}
+    else:
+        extra = 0
     for k, v in src.items():
         if k == "log_std":  # below: its shape differs with gSDE
             continue
@@ -552,6 +577,8 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     if src_stride != stride:
         for k in [k for k in src if k.endswith("net.0.weight")]:
             src[k] = torch.as_tensor(restride(src[k].numpy(), view.n_rays, stride / src_stride), dtype=src[k].dtype)
+    if extra:
+        src[critic] = torch.cat([src[critic], src[critic].new_zeros(src[critic].shape[0], extra)], 1)
     if std is not None:
         src["log_std"] = torch.full_like(src["log_std"], float(np.log(std)))
     if src["log_std"].shape != dst["log_std"].shape:  # one of the two explores with gSDE

@@ -27,6 +27,7 @@ from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
 from racecav.training.flow_reward import flow_reward, flow_weights
 from racecav.training.hold_heading import HoldHeading
+from racecav.training.privileged import N_PRIVILEGED, privileged_features
 from racecav.training.proximity import proximity_penalty
 
 
@@ -84,6 +85,8 @@ class FastVecEnv(VecEnv):
     :param config: EnvConfig to start from; keyword overrides as in OvertakeEnv (heading,
         n_obstacles, driver, control_period, time_limit, world, car, agent_speed_scale,
         parallel: the lidar on numba's threads).
+    :param privileged: append the critic's privileged features to each observation (after the
+        scans; training/privileged.py).
     :param seed: seed of the reset randomisation (also settable with ``seed()``).
     """
 
@@ -95,7 +98,7 @@ class FastVecEnv(VecEnv):
                  scenarios: str | None = None, scenario_share: float | None = None,
                  contact_penalty: float | None = None, obs_stack: int | None = None,
                  progress_reward: float | None = None, brake_below: float | None = None,
-                 lane_keeping: float | None = None, seed: int | None = None):
+                 lane_keeping: float | None = None, privileged: bool = False, seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -112,7 +115,13 @@ class FastVecEnv(VecEnv):
         n = sum(w.n_envs for w in self.worlds)
         spec = self.world.spec
         self.n_stack, self.stride = self.settings.obs_stack, self.settings.obs_stride
-        obs_space = gym.spaces.Box(spec.range_min, spec.range_max, (self.n_stack * spec.n_rays,), np.float32)
+        self.privileged = privileged
+        n_obs = self.n_stack * spec.n_rays
+        low, high = np.full(n_obs, spec.range_min, np.float32), np.full(n_obs, spec.range_max, np.float32)
+        if privileged:
+            low = np.concatenate([low, np.full(N_PRIVILEGED, -np.inf, np.float32)])
+            high = np.concatenate([high, np.full(N_PRIVILEGED, np.inf, np.float32)])
+        obs_space = gym.spaces.Box(low, high, dtype=np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
         super().__init__(n, obs_space, act_space)
@@ -157,8 +166,12 @@ class FastVecEnv(VecEnv):
         return self._stacked()
 
     def _stacked(self) -> np.ndarray:
-        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened."""
-        return self._stack[:, ::self.stride].reshape(self.num_envs, -1).copy() if self.n_stack > 1 else self._stack[:, 0].copy()
+        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
+        (then the critic's privileged features of the worlds' current state, if asked)."""
+        obs = self._stack[:, ::self.stride].reshape(self.num_envs, -1) if self.n_stack > 1 else self._stack[:, 0]
+        if self.privileged:
+            return np.concatenate([obs, np.concatenate([privileged_features(w) for w in self.worlds])], axis=1)
+        return obs.copy()
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
