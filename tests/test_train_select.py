@@ -51,8 +51,9 @@ def test_select_keeps_family_columns(tmp_path, monkeypatch):
 
     # --no-record: a scratch evaluation leaves the committed records alone
     shutil.rmtree(record)
-    assert main(sel + ["--no-record"]) == 0
+    assert main(sel + ["--no-record", "--newest-first", "--no-progress"]) == 0
     assert not record.exists()
+    assert _eval_rows(run) == (fields, rows)
 
 
 @pytest.mark.timeout(300)

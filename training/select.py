@@ -56,6 +56,9 @@ def add_subcommands(sub) -> None:
     p.add_argument("--last", type=int, help="only the last K checkpoints")
     p.add_argument("--every", type=int, default=1, help="every k-th checkpoint, counted back from the newest "
                    "(which is always evaluated)")
+    p.add_argument("--newest-first", action="store_true", help="evaluate the newest checkpoints first (a run "
+                   "still training: its new checkpoints need not wait for the old ones)")
+    p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
     p.add_argument("--no-intersection", action="store_true", help="held-out env only (racing stage)")
     p.add_argument("--no-record", action="store_true", help="do not copy the run's records to "
                    "training/checkpoints/<run>/ (a scratch evaluation, e.g. a folder holding one checkpoint)")
@@ -361,7 +364,8 @@ def select(args, cfg) -> int:
             # must not drop them
             fields += sorted({k for r in done.values() for k in r if k.startswith("suite_") and k not in fields})
     rows = []
-    for ck in tqdm(picked, desc=f"select {run_dir.name}", unit="ckpt"):
+    for ck in tqdm(picked[::-1] if args.newest_first else picked, desc=f"select {run_dir.name}", unit="ckpt",
+                   disable=args.no_progress):
         n = _step(ck)
         prev = done.get(n)
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
