@@ -470,6 +470,10 @@ class TrainConfig(Section):
     rest. Every step is labelled with the planner's action either way."""
     expert_horizon_s: float = Field(2.5, gt=0)
     """dagger, and overtake with bc_coef: the planner's look-ahead (s)."""
+    expert_seen: bool = False
+    """dagger, and overtake with bc_coef: the planner labels plain tracking in a scenario world
+    until a car has been in its ego's scan in the episode (FastWorld.seen_by_agent), so its
+    labels answer only what the policy has seen (training/expert.py)."""
     expert_commit_s: float | None = Field(None, gt=0)
     """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
     touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre

@@ -206,3 +206,30 @@ def test_committed_planner_tracks_until_a_contact_is_near_and_still_passes():
             assert (tracking_hit < 10).all(), tracking_hit  # ... until tracking hits within 1.0 s
         else:
             assert (first_manoeuvre < 0).all(), first_manoeuvre
+
+
+def test_seen_only_planner_tracks_until_the_car_has_been_in_view_and_still_passes():
+    """``Expert(seen_only=True)`` (``--expert-seen``): on the conflict-timed left-to-right, driving
+    its own labels, it labels plain tracking at every step before its ego's scan first shows the
+    car (hidden by the corner at the start), the unrestricted planner's label from then on (also
+    once the car is out of view again), and passes."""
+    fw = FastWorld(n_envs=4, scenarios=[load_scenario("conflict-left-to-right")], seed=4)
+    fw.reset()
+    ex, free = Expert(fw, seen_only=True), Expert(fw)
+    ended, ok, latched = np.zeros(4, bool), np.zeros(4, bool), np.zeros(4, bool)
+    hidden_steps = seen_steps = 0
+    while not ended.all():
+        latched |= fw.seen_by_agent(np.arange(4)).any(axis=1)
+        free.last_best[:] = ex.last_best  # the same hysteresis state, so labels compare one to one
+        a, b = ex.act(), free.act()
+        live = ~ended
+        assert np.array_equal(ex.seen[live], latched[live])
+        assert (ex.last_best[~latched & live] == 0).all()
+        assert np.allclose(a[latched & live], b[latched & live])
+        hidden_steps += int((~latched & live).sum())
+        seen_steps += int((latched & live).sum())
+        fw.step(a)
+        over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
+        ok[over] = fw.success()[over]
+        ended |= over
+    assert ok.all() and hidden_steps > 0 and seen_steps > 0

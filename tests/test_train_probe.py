@@ -45,3 +45,21 @@ def test_late_decision_planner_passes_from_the_start_and_fails_when_held_straigh
     assert conflict == {float("inf"): 1.0, 0.5: 0.0}  # a decision 0.5 m out is too late for a car timed to meet
     paper = late_decision(str(SCENARIOS_DIR / "left-to-right.toml"), "", 16, [0.5], 1)
     assert paper == {0.5: 1.0}  # the paper's timing: a straight fast ego passes ahead
+
+
+@pytest.mark.timeout(300)
+def test_seen_decision_frees_the_planner_where_its_straight_ego_first_sees_the_car():
+    """Held straight until the car is in view: the conflict-timed car from the left comes out
+    from behind the corner about 3 m out, and a decision then passes, one 10 periods (0.5 s)
+    later does not. The paper-timed car stays hidden from a straight fast ego until it is through
+    the crossing: the planner is freed only at the conflict point, and the straight pass wins."""
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.probe import seen_decision
+
+    conflict = seen_decision(str(SCENARIOS_DIR / "conflict-left-to-right.toml"), "", 8, [0, 10], 1)
+    (ok0, d0), (ok10, d10) = conflict[0], conflict[10]
+    assert ok0 == 1.0 and ok10 == 0.0
+    assert 2.5 < d0 < 3.5 and d10 < d0 - 1.0
+    paper = seen_decision(str(SCENARIOS_DIR / "left-to-right.toml"), "", 8, [0], 1)
+    ok, d = paper[0]
+    assert ok == 1.0 and abs(d) < 0.2

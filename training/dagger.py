@@ -114,7 +114,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     if tc.expert in ("mirror", "track"):
         experts, teacher = [], mirror_teacher(tc, fast)
     else:
-        experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s) for w in fast.worlds], None
+        experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s, seen_only=tc.expert_seen) for w in fast.worlds], None
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
     tied = getattr(policy, "tied", None)  # a mirror-symmetric actor stays tied (training/symmetric.py)

@@ -58,7 +58,8 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
         def __init__(self):
             super().__init__()
             self.teacher = mirror_teacher(tc, fast) if mirror else None
-            self.experts = [] if mirror else [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s)
+            self.experts = [] if mirror else [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s,
+                                                     seen_only=tc.expert_seen)
                                               for w in fast.worlds]
             self.car = fast.world.car
             self.lo, self.hi = action_bounds(self.car)
@@ -106,12 +107,16 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 keep = mask | self.teacher.anchored() | (self.step_in_rollout in self.label_at)
                 if keep.any():
                     self._store(raw[keep], label[keep], mask[keep])
-            elif self.step_in_rollout in self.label_at:
-                for e in self.experts:
-                    e.last_best[:] = 0  # labels at spaced steps: no hysteresis to keep
-                label = np.concatenate([e.act() for e in self.experts])
-                man = np.concatenate([e.last_best != 0 for e in self.experts])
-                self._store(self._raw_obs(), label, man)
+            else:
+                if tc.expert_seen:  # the latch of what has been in view follows every step
+                    for e in self.experts:
+                        e.update_seen()
+                if self.step_in_rollout in self.label_at:
+                    for e in self.experts:
+                        e.last_best[:] = 0  # labels at spaced steps: no hysteresis to keep
+                    label = np.concatenate([e.act() for e in self.experts])
+                    man = np.concatenate([e.last_best != 0 for e in self.experts])
+                    self._store(self._raw_obs(), label, man)
             self.step_in_rollout += 1
             return True
 

@@ -41,6 +41,9 @@ def add_subcommands(sub) -> None:
                    help="probe views: 0 = the newest scan alone, s = it and the scan s control periods older")
     p.add_argument("--late-n", type=int, default=256,
                    help="worlds per source and distance for the planner held straight until that distance (0: skip)")
+    p.add_argument("--seen-delays", default="0,1,2,4",
+                   help="control periods after a car is first in the held-straight ego's scan at which the planner "
+                        "is freed (with --late-n; '' to skip)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, help="also write the tables (X.md) or the probe rows (X.csv)")
     p.set_defaults(stage="probe")
@@ -96,10 +99,11 @@ def collect(policy, source: str, family: str, n: int, distances, strides, seed: 
             "yaw": {d: v[keep] for d, v in yaw.items()}, "success": success[keep]}
 
 
-def late_decision(source: str, family: str, n: int, distances, seed: int) -> dict[float, float]:
-    """Success of the privileged planner held straight (tracking its road at full throttle) until
-    its ego is within each distance of the conflict point, free from there: can a decision that
-    late still pass the source's files? Distance inf: the planner from the start."""
+def _held_planner(source: str, family: str, n: int, seed: int, release) -> tuple[float, float]:
+    """The privileged planner held straight (tracking its road at full throttle) in ``n`` worlds of
+    each world geometry of the source's files, each world free once ``release(fw, held)`` (a bool
+    mask over the worlds, ``held``: not free yet) says so. Returns (success, median distance of
+    the ego to the conflict point when it was freed)."""
     import numpy as np
 
     from racecav.common.scenario import load_scenario, scenario_sources
@@ -109,26 +113,60 @@ def late_decision(source: str, family: str, n: int, distances, seed: int) -> dic
     scs = [sc for sc in (load_scenario(f) for f, _fam in scenario_sources(source, "train")) if sc.name.startswith(family)]
     if not scs:
         raise SystemExit(f"racecav train probe: no scenario of {source!r} starts with {family!r}")
-    out = {}
-    for d in distances:
-        success = []
-        for k, world in enumerate(sorted({sc.world for sc in scs})):  # one FastWorld per world geometry
-            fw = FastWorld(n_envs=n, scenarios=[sc for sc in scs if sc.world == world], seed=seed + k)
-            fw.reset()
-            planner = Expert(fw)
-            late, ended, ok = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
-            while not ended.all():
-                late |= fw.agent_state()[:, 0] >= -d
-                a = np.stack([np.ones(n), tracking_steer(fw)], axis=1)
-                if late.any():
-                    a[late] = planner.act()[late]
-                fw.step(a)
-                over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
-                ok[over] = fw.success()[over]
-                ended |= over
-            success.append(ok)
-        out[d] = float(np.concatenate(success).mean())
-    return out
+    success, freed_at = [], []
+    for k, world in enumerate(sorted({sc.world for sc in scs})):  # one FastWorld per world geometry
+        fw = FastWorld(n_envs=n, scenarios=[sc for sc in scs if sc.world == world], seed=seed + k)
+        fw.reset()
+        planner = Expert(fw)
+        late, ended, ok = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        where = np.full(n, np.nan)
+        while not ended.all():
+            now = ~late & ~ended & release(fw, ~late)
+            where[now] = -fw.agent_state()[now, 0]
+            late |= now
+            a = np.stack([np.ones(n), tracking_steer(fw)], axis=1)
+            if late.any():
+                a[late] = planner.act()[late]
+            fw.step(a)
+            over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
+            ok[over] = fw.success()[over]
+            ended |= over
+        success.append(ok)
+        freed_at.append(where)
+    freed = np.concatenate(freed_at)
+    return float(np.concatenate(success).mean()), float(np.nanmedian(freed)) if np.isfinite(freed).any() else float("nan")
+
+
+def late_decision(source: str, family: str, n: int, distances, seed: int) -> dict[float, float]:
+    """Success of the privileged planner held straight (tracking its road at full throttle) until
+    its ego is within each distance of the conflict point, free from there: can a decision that
+    late still pass the source's files? Distance inf: the planner from the start."""
+    return {d: _held_planner(source, family, n, seed, lambda fw, held, d=d: fw.agent_state()[:, 0] >= -d)[0]
+            for d in distances}
+
+
+def seen_decision(source: str, family: str, n: int, delays, seed: int) -> dict[int, tuple[float, float]]:
+    """The planner held straight as in late_decision until ``delay`` control periods after a car
+    first returned a ray of its ego's scan (FastWorld.seen_by_agent), free from there (and at
+    the conflict point at the latest): what a policy that must see a car, and then needs some
+    scans to judge its motion, could still pass if it then drove as the planner does.
+    Returns {delay: (success, median distance to the conflict point when freed)}."""
+    import numpy as np
+
+    def release(delay):
+        count = {}
+
+        def fn(fw, held):
+            c = count.setdefault(id(fw), np.full(fw.n_envs, -1))  # periods since first seen; -1: not yet
+            envs = np.flatnonzero(held & (c < 0))
+            if envs.size:
+                c[envs[fw.seen_by_agent(envs).any(axis=1)]] = 0
+            out = (c >= delay) | (fw.agent_state()[:, 0] >= 0.0)
+            c[c >= 0] += 1
+            return out
+        return fn
+
+    return {k: _held_planner(source, family, n, seed, release(k)) for k in delays}
 
 
 def fit_probe(x0, x1, v0, v1, seed: int = 0) -> dict:
@@ -180,6 +218,9 @@ def probe(args, cfg) -> int:
         raise SystemExit(f"racecav train probe: --sources: expected two sources, got {sources}")
     distances = _floats(args.distances, "--distances")
     strides = [int(s) for s in _floats(args.strides, "--strides")]
+    delays = [int(d) for d in _floats(args.seen_delays, "--seen-delays")] if args.seen_delays.strip() else []
+    if any(d < 0 for d in delays):
+        raise SystemExit("racecav train probe: --seen-delays must be >= 0")
     if any(s < 0 for s in strides) or any(d <= 0 for d in distances) or args.n < 1 or args.late_n < 0:
         raise SystemExit("racecav train probe: --strides must be >= 0, --distances > 0, --n >= 1 and --late-n >= 0")
     policy = named_policy(args.policy)
@@ -192,6 +233,7 @@ def probe(args, cfg) -> int:
                              for name, drv in reference_drivers().items()}
         dat["late"] = late_decision(src, args.family, args.late_n, [float("inf")] + distances,
                                     args.seed + 7919 * k) if args.late_n else {}
+        dat["seen"] = seen_decision(src, args.family, args.late_n, delays, args.seed + 7919 * k) if args.late_n else {}
     rows = [{"distance_m": d, "stride": s, **fit_probe(data[0]["views"][(d, s)], data[1]["views"][(d, s)],
                                                       data[0]["speed"][d], data[1]["speed"][d], seed=args.seed)}
             for d in distances for s in strides]
@@ -210,11 +252,19 @@ def probe(args, cfg) -> int:
     return 0
 
 
+def _control_period() -> float:
+    """The training car's control period (s)."""
+    from racecav.common.vehicle import load_car
+
+    return load_car("slash").control_period_s
+
+
 def _markdown(args, sources, data, distances, rows) -> str:
     import numpy as np
 
     L = [f"`racecav train probe --policy {args.policy} --sources {args.sources} --family '{args.family}' --n {args.n} "
-         f"--distances {args.distances} --strides {args.strides} --late-n {args.late_n} --seed {args.seed}`", "",
+         f"--distances {args.distances} --strides {args.strides} --late-n {args.late_n} "
+         f"--seen-delays '{args.seen_delays}' --seed {args.seed}`", "",
          "| source | episodes | success | " + " | ".join(f"{r}, no evasion" for r in data[0]["references"]) + " | "
          + " | ".join(f"policy's yaw at {d:g} m (deg)" for d in distances) + " |",
          "|---|---:|---:|" + "---:|" * (len(data[0]["references"]) + len(distances))]
@@ -229,6 +279,15 @@ def _markdown(args, sources, data, distances, rows) -> str:
                                        for d in data[0]["late"]) + " |", "|---|" + "---:|" * len(data[0]["late"])]
         for src, dat in zip(sources, data):
             L.append(f"| {src} | " + " | ".join(f"{100 * v:.0f} %" for v in dat["late"].values()) + " |")
+    if data[0].get("seen"):
+        period_ms = 1000 * _control_period()
+        L += ["", f"The same planner held straight until k control periods ({period_ms:.0f} ms each) after a car first "
+              "returned a ray of its ego's scan, free from there (at the conflict point at the latest): success, and "
+              "the median distance of the ego to the conflict point when freed", "",
+              "| source | " + " | ".join(f"{k} periods after first seen" for k in data[0]["seen"]) + " |",
+              "|---|" + "---:|" * len(data[0]["seen"])]
+        for src, dat in zip(sources, data):
+            L.append(f"| {src} | " + " | ".join(f"{100 * ok:.0f} % ({d:.2f} m)" for ok, d in dat["seen"].values()) + " |")
     L += ["", "| ego to conflict point (m) | probe's view | speed band (m/s) | per class | speed alone | probe train | "
           "probe held-out |", "|---:|---|---|---:|---:|---:|---:|"]
     for r in rows:
