@@ -1498,7 +1498,8 @@ def _ablation_markdown() -> str:
               "left-to-right (hidden from it), the conflict-timed one (the paper's file: in view from about 3 m, "
               "tests/test_train_probe.py) "
               "and about 75 % of the suite's crossings from the left (the lowest family's target: 70 %). "
-              "Row 49 teaches that policy. The probe's own rows below use 1,024 worlds per source (about "
+              "Row 49 tried to teach that policy by imitating the seeing planner, and collapsed (above): what "
+              "is missing is a way to learn it, not the information. The probe's own rows below use 1,024 worlds per source (about "
               "100 speed-matched episodes per class): too few for its accuracies, which the first table "
               "(8,192 worlds) measures.", "", seen_md.read_text(), ""]
     for run, *_ in rows:
