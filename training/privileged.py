@@ -13,6 +13,10 @@ and the car provides nothing more.
 The VecEnv appends N_PRIVILEGED features to each observation (FastVecEnv(privileged=True));
 PrivilegedCriticPolicy's actor reads the first ``actor_inputs`` of them, its critic all.
 Exported policies (common/policy.py) keep the actor and its inputs' normalisation only.
+
+Measured (docs/training.md, rows 47-48, from row 31's 5 M): PPO's explained variance rises from
+0.76 to 0.87, and the actor's results stay in row 31's range (paper-timed left-to-right 75-92 %);
+with row 46's margin term, 69-84 %. No shipped policy uses it.
 """
 
 from __future__ import annotations

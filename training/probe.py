@@ -11,7 +11,9 @@ ranges) and balanced, and "speed alone" is the best accuracy of a speed threshol
 speed explains is not read as a view difference. The policy's own turn at each distance (mean yaw)
 says when it commits. Beside it, the privileged planner (training/expert.py), held straight on
 its road at full throttle until its ego is within each distance and free from there, says
-whether a decision that late can still pass both sources (``--late-n`` worlds per cell).
+whether a decision that late can still pass both sources (``--late-n`` worlds per cell), and
+held straight until k control periods after a car is first in its ego's scan (``--seen-delays``),
+what a policy that answers only what it sees could pass.
 ``--out X.md`` writes the tables (docs/training.md embeds
 training/checkpoints/probe-cross-left.md), ``--out X.csv`` the probe rows.
 
