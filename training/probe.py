@@ -101,11 +101,12 @@ def collect(policy, source: str, family: str, n: int, distances, strides, seed: 
             "yaw": {d: v[keep] for d, v in yaw.items()}, "success": success[keep]}
 
 
-def _held_planner(source: str, family: str, n: int, seed: int, release) -> tuple[float, float]:
+def _held_planner(source: str, family: str, n: int, seed: int, make_release) -> tuple[float, float]:
     """The privileged planner held straight (tracking its road at full throttle) in ``n`` worlds of
-    each world geometry of the source's files, each world free once ``release(fw, held)`` (a bool
-    mask over the worlds, ``held``: not free yet) says so. Returns (success, median distance of
-    the ego to the conflict point when it was freed)."""
+    each world geometry of the source's files, each world free once its release says so:
+    ``make_release(fw)`` gives, per FastWorld, a function of the mask of worlds still held that
+    returns a bool mask over the worlds. Returns (success, median distance of the ego to the
+    conflict point when it was freed)."""
     import numpy as np
 
     from racecav.common.scenario import load_scenario, scenario_sources
@@ -119,11 +120,11 @@ def _held_planner(source: str, family: str, n: int, seed: int, release) -> tuple
     for k, world in enumerate(sorted({sc.world for sc in scs})):  # one FastWorld per world geometry
         fw = FastWorld(n_envs=n, scenarios=[sc for sc in scs if sc.world == world], seed=seed + k)
         fw.reset()
-        planner = Expert(fw)
+        planner, release = Expert(fw), make_release(fw)
         late, ended, ok = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         where = np.full(n, np.nan)
         while not ended.all():
-            now = ~late & ~ended & release(fw, ~late)
+            now = ~late & ~ended & release(~late)
             where[now] = -fw.agent_state()[now, 0]
             late |= now
             a = np.stack([np.ones(n), tracking_steer(fw)], axis=1)
@@ -143,8 +144,10 @@ def late_decision(source: str, family: str, n: int, distances, seed: int) -> dic
     """Success of the privileged planner held straight (tracking its road at full throttle) until
     its ego is within each distance of the conflict point, free from there: can a decision that
     late still pass the source's files? Distance inf: the planner from the start."""
-    return {d: _held_planner(source, family, n, seed, lambda fw, held, d=d: fw.agent_state()[:, 0] >= -d)[0]
-            for d in distances}
+    def within(d):
+        return lambda fw: lambda held: fw.agent_state()[:, 0] >= -d
+
+    return {d: _held_planner(source, family, n, seed, within(d))[0] for d in distances}
 
 
 def seen_decision(source: str, family: str, n: int, delays, seed: int) -> dict[int, tuple[float, float]]:
@@ -155,20 +158,21 @@ def seen_decision(source: str, family: str, n: int, delays, seed: int) -> dict[i
     Returns {delay: (success, median distance to the conflict point when freed)}."""
     import numpy as np
 
-    def release(delay):
-        count = {}
+    def after_seen(delay):
+        def make(fw):
+            periods = np.full(fw.n_envs, -1)  # since a car was first in view; -1: not yet
 
-        def fn(fw, held):
-            c = count.setdefault(id(fw), np.full(fw.n_envs, -1))  # periods since first seen; -1: not yet
-            envs = np.flatnonzero(held & (c < 0))
-            if envs.size:
-                c[envs[fw.seen_by_agent(envs).any(axis=1)]] = 0
-            out = (c >= delay) | (fw.agent_state()[:, 0] >= 0.0)
-            c[c >= 0] += 1
-            return out
-        return fn
+            def release(held):
+                envs = np.flatnonzero(held & (periods < 0))
+                if envs.size:
+                    periods[envs[fw.seen_by_agent(envs).any(axis=1)]] = 0
+                out = (periods >= delay) | (fw.agent_state()[:, 0] >= 0.0)
+                periods[periods >= 0] += 1
+                return out
+            return release
+        return make
 
-    return {k: _held_planner(source, family, n, seed, release(k)) for k in delays}
+    return {k: _held_planner(source, family, n, seed, after_seen(k)) for k in delays}
 
 
 def fit_probe(x0, x1, v0, v1, seed: int = 0) -> dict:
@@ -255,10 +259,10 @@ def probe(args, cfg) -> int:
 
 
 def _control_period() -> float:
-    """The training car's control period (s)."""
+    """The control period (s) of the fast world's car (its default, as the planners above use)."""
     from racecav.common.vehicle import load_car
 
-    return load_car("slash").control_period_s
+    return load_car().control_period_s
 
 
 def _markdown(args, sources, data, distances, rows) -> str:
