@@ -357,6 +357,8 @@ class EnvConfig(Section):
     def _boost_needs_curriculum(self):
         if self.curriculum_boost and not self.curriculum:
             raise ValueError("curriculum_boost: weighs the curriculum's draw; set curriculum too")
+        if self.hold_track and self.hold_heading:
+            raise ValueError("hold_track: already charges the heading with its own latch; drop hold_heading")
         return self
 
     lidar: Literal["paper", "wide"] = "paper"
@@ -391,6 +393,11 @@ class EnvConfig(Section):
     """Scenario episodes of the fast VecEnv: reward -hold_heading x |heading error| (rad, from
     the ego's road) at each step until a car has been in the ego's scan (latched per episode;
     training/hold_heading.py), so an evasion answers a car the ego sees. 0: off."""
+    hold_track: float = Field(0.0, ge=0)
+    """Scenario episodes of the fast VecEnv: reward -hold_track x (|lateral offset| (m) + |heading
+    error| (rad) + (1 - T)) at each step until a car is in the view of the ego moved onto its
+    road (latched per episode; training/hold_heading.py): a straight pass at full throttle until
+    a straight ego would see a car. Excludes hold_heading. 0: off."""
     proximity_penalty: float = Field(0.0, ge=0)
     """Scenario episodes of the fast VecEnv: reward -proximity_penalty x (1.2 m - d) at each step
     where the nearest other car is at a centre distance d < 1.2 m (training/proximity.py), so

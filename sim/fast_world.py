@@ -419,11 +419,15 @@ class FastWorld:
                     self.spec.angle_min, self.spec.angle_increment, self.spec.range_max,
                     self.ranges)
 
-    def seen_by_agent(self, envs: np.ndarray) -> np.ndarray:
+    def seen_by_agent(self, envs: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
         """(len(envs), C - 1) bool: the other cars that return at least one ray of the agent's
         current scan in the worlds ``envs`` (line of sight past the walls and the other cars).
         Each car is taken out in turn and the agent's scan redone: a car is seen where that
-        changes the scan. Costs one agent scan per other car and world."""
+        changes the scan. Costs one agent scan per other car and world.
+
+        :param pose: (len(envs), 3) x, y, yaw to scan from instead of the agent's own pose (the
+            agent's box moved there; a counterfactual view, e.g. of an ego that kept its road).
+            Costs one more scan. The world is not changed."""
         envs = np.asarray(envs, dtype=np.int64)
         N, C = self.x.shape
         out = np.zeros((len(envs), C - 1), dtype=bool)
@@ -431,14 +435,23 @@ class FastWorld:
             return out
         observe = np.zeros_like(self.observe)
         observe[envs, 0] = True
+        x, y, yaw, corners, base = self.x, self.y, self.yaw, self.corners, self.ranges
+        if pose is not None:
+            x, y, yaw = x.copy(), y.copy(), yaw.copy()
+            x[envs, 0], y[envs, 0], yaw[envs, 0] = np.asarray(pose, dtype=np.float64).T
+            corners, base = np.empty_like(self.corners), np.empty_like(self.ranges)
+            K.box_corners(x, y, yaw, self.hx, self.hy, corners)
+            self._lidar(x, y, yaw, self.active, observe, self.faces, self.chunks, corners, self.mount,
+                        self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min, self.spec.angle_increment,
+                        self.spec.range_max, base)
         ranges = np.empty_like(self.ranges)
         for c in range(1, C):
             active = self.active.copy()
             active[:, c] = False
-            self._lidar(self.x, self.y, self.yaw, active, observe, self.faces, self.chunks, self.corners,
+            self._lidar(x, y, yaw, active, observe, self.faces, self.chunks, corners,
                         self.mount, self.ray_c, self.ray_s, self.ray_t, self.spec.angle_min,
                         self.spec.angle_increment, self.spec.range_max, ranges)
-            out[:, c - 1] = (ranges[envs, 0] != self.ranges[envs, 0]).any(axis=1) & self.active[envs, c]
+            out[:, c - 1] = (ranges[envs, 0] != base[envs, 0]).any(axis=1) & self.active[envs, c]
         return out
 
     # ------------------------------------------------------------------ views

@@ -1,5 +1,5 @@
-"""The reward terms of ``racecav train overtake --hold-heading W`` (training/hold_heading.py) and
-``--proximity-penalty W`` (training/proximity.py)."""
+"""The reward terms of ``racecav train overtake --hold-heading W`` and ``--hold-track W``
+(training/hold_heading.py) and ``--proximity-penalty W`` (training/proximity.py)."""
 
 from __future__ import annotations
 
@@ -57,6 +57,81 @@ def test_heading_error_is_charged_until_a_car_has_been_in_view():
 def test_the_term_is_refused_outside_the_fast_vec_env():
     with pytest.raises(ValueError, match="hold_heading"):
         OvertakeEnv(config=EnvConfig(hold_heading=1.0))
+    with pytest.raises(ValueError, match="hold_track"):
+        OvertakeEnv(config=EnvConfig(hold_track=1.0))
+    with pytest.raises(ValueError, match="hold_track: .*drop hold_heading"):
+        EnvConfig(hold_track=1.0, hold_heading=1.0)
+
+
+def _ghost(w) -> np.ndarray:
+    """(N, 3) each ego moved onto its road's line at its progress, with the road's heading."""
+    x0, y0, yaw0 = w.start_pose.T
+    s = w.progress()
+    return np.stack([x0 + s * np.cos(yaw0), y0 + s * np.sin(yaw0), yaw0], axis=1)
+
+
+def test_seen_from_a_pose_is_the_view_of_the_agent_moved_there():
+    """FastWorld.seen_by_agent(envs, pose) equals the plain call on a copy of the world whose
+    agent was moved to ``pose`` (set_state), and leaves the world as it was."""
+    import copy
+
+    env = _env(0.0)
+    env.reset()
+    (w,) = env.worlds
+    a = np.tile(np.array([1.0, 0.0], np.float32), (8, 1))
+    compared = differs = 0
+    for k in range(25):
+        a[4:, 1] = 0.5 if k < 4 else -0.5 if k < 8 else 0.0  # rows 4-7 drift left: another view
+        env.step(a)
+        envs = np.arange(8)
+        pose = _ghost(w)
+        before = (w.x.copy(), w.ranges.copy(), w.corners.copy())
+        got = w.seen_by_agent(envs, pose=pose)
+        assert np.array_equal(w.x, before[0]) and np.array_equal(w.ranges, before[1]) and np.array_equal(w.corners, before[2])
+        moved = copy.deepcopy(w)
+        for n in envs:
+            moved.set_state(int(n), 0, x=pose[n, 0], y=pose[n, 1], yaw=pose[n, 2])
+        assert np.array_equal(got, moved.seen_by_agent(envs))
+        assert np.array_equal(w.seen_by_agent(envs, pose=w.agent_state()[:, :3]), w.seen_by_agent(envs))
+        compared += got.any(axis=1).sum()
+        differs += int((got != w.seen_by_agent(envs)).any(axis=1).sum())
+    assert compared > 0 and differs > 0
+    env.close()
+
+
+def test_hold_track_charges_any_departure_from_a_straight_pass_until_a_straight_ego_would_see():
+    """--hold-track W: against the same worlds without it, the reward differs by
+    -W x (|lateral offset| + |heading error| + (1 - T)) until a car is in the ghost's view (the ego
+    moved onto its road), by nothing after; a drift that shows the car early does not end it."""
+    mk = lambda w: FastVecEnv(config=EnvConfig(n_envs=8, scenarios=str(SCENARIOS_DIR / "left-to-right.toml"),
+                                               scenario_share=1.0, n_obstacles=0, lidar="wide", hold_track=w), seed=4)
+    env, ref = mk(W), mk(0.0)
+    env.reset(), ref.reset()
+    (w,) = env.worlds
+    # rows 0-3 hold their road at full throttle; rows 4-7 drift right at 0.7 throttle (and see
+    # past the corner a step before a straight ego at their progress would)
+    a = np.tile(np.array([1.0, 0.0], np.float32), (8, 1))
+    latched = np.zeros(8, dtype=bool)
+    own_first = 0  # steps where a drifting ego sees the car and the ghost does not yet
+    for k in range(40):
+        a[4:] = (0.7, -0.5 if k < 4 else 0.5 if k < 8 else 0.0)
+        _, r, d, _ = env.step(a)
+        _, r0, d0, _ = ref.step(a)
+        assert np.array_equal(d, d0)
+        if d.any():
+            assert not env.hold_heading.seen[d].any()
+            break
+        x0, y0, yaw0 = w.start_pose.T
+        lat = np.abs(-(w.x[:, 0] - x0) * np.sin(yaw0) + (w.y[:, 0] - y0) * np.cos(yaw0))
+        head = np.abs(np.angle(np.exp(1j * (w.yaw[:, 0] - yaw0))))
+        ghost_sees = w.seen_by_agent(np.arange(8), pose=_ghost(w))[:, 0]
+        own_first += int((w.seen_by_agent(np.arange(8))[:, 0] & ~(latched | ghost_sees))[4:].sum())
+        latched |= ghost_sees
+        assert np.array_equal(env.hold_heading.seen, latched)
+        expected = np.where(latched, 0.0, -W * (lat + head + (1.0 - np.clip(a[:, 0], 0, 1))))
+        assert np.allclose(r - r0, expected, atol=1e-3)
+    assert latched[:4].all() and own_first > 0
+    env.close(), ref.close()
 
 
 def test_proximity_penalty_is_the_margin_to_the_nearest_car_within_reach():

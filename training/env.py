@@ -208,7 +208,7 @@ class OvertakeEnv(gym.Env):
                                      scenarios=scenarios, obs_stack=obs_stack, contact_penalty=contact_penalty,
                                      scenario_share=1.0 if scenarios else None, brake_below=brake_below)
         st = self.settings
-        for term in ("lane_keeping", "flow_reward", "hold_heading", "proximity_penalty"):
+        for term in ("lane_keeping", "flow_reward", "hold_heading", "hold_track", "proximity_penalty"):
             if getattr(st, term):
                 raise ValueError(f"{term}: a reward term of the training VecEnv only (training/vec_env.FastVecEnv, "
                                  "--preset fast); this env keeps the paper's reward")

@@ -847,7 +847,7 @@ def _ablation_markdown() -> str:
             [f"{k} {getattr(prev.env, k)} -> {getattr(tc.env, k)}" for k in (
                 "progress_reward", "obs_stack", "obs_stride", "contact_penalty", "scenarios", "scenario_share", "brake_below",
                 "curriculum", "curriculum_boost", "lidar", "lane_keeping", "lane_keeping_horizon_s", "flow_reward",
-                "hold_heading", "proximity_penalty") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
+                "hold_heading", "hold_track", "proximity_penalty") if getattr(prev.env, k) != getattr(tc.env, k) and k not in ppo_only]
             + [f"{k} {_shown(getattr(prev, k))} -> {_shown(getattr(tc, k))}" for k in ("stage", "learning_rate", "ent_coef", "expert_share", "bc_coef",
                                                                           "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert_commit_s", "expert_seen",
                                                                           "expert", "mirror_families", "mirror_seen", "anchor_families", "mirror_symmetric",

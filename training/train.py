@@ -55,7 +55,7 @@ ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-o
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
              "contact_penalty": "--contact-penalty", "lane_keeping": "--lane-keeping",
              "lane_keeping_horizon_s": "--lane-keeping-horizon", "flow_reward": "--flow-reward",
-             "hold_heading": "--hold-heading", "proximity_penalty": "--proximity-penalty",
+             "hold_heading": "--hold-heading", "hold_track": "--hold-track", "proximity_penalty": "--proximity-penalty",
              "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
              "curriculum_boost": "--curriculum-boost", "lidar": "--lidar"}
 """EnvConfig fields that are flags (field -> flag)."""

@@ -26,7 +26,7 @@ from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
 from racecav.training.flow_reward import flow_reward, flow_weights
-from racecav.training.hold_heading import HoldHeading
+from racecav.training.hold_heading import HoldRoad
 from racecav.training.privileged import N_PRIVILEGED, privileged_features
 from racecav.training.proximity import proximity_penalty
 
@@ -141,8 +141,7 @@ class FastVecEnv(VecEnv):
 
             self.lane_keeping = LaneKeeping(self.worlds, self.slices, self.settings.lane_keeping,
                                             self.settings.lane_keeping_horizon_s)
-        self.hold_heading = (HoldHeading(n, self.settings.hold_heading)
-                             if self.settings.hold_heading and self.is_scenario.any() else None)
+        self.hold_heading = HoldRoad.from_settings(n, self.settings) if self.is_scenario.any() else None
         if seed is not None:
             self.seed(seed)
 
@@ -194,7 +193,7 @@ class FastVecEnv(VecEnv):
             if flow is not None:
                 flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
             if hold is not None:  # the state the step led to: its heading, and what the new scan shows
-                hold.append(self.hold_heading.step(w, sl))
+                hold.append(self.hold_heading.step(w, sl, a[:, 0]))
             if near is not None:
                 near.append(proximity_penalty(self.settings.proximity_penalty, w))
             obs_parts.append(o)
