@@ -67,7 +67,7 @@ class HoldRoad:
 
     def step(self, world, sl: slice, throttle: np.ndarray) -> np.ndarray:
         """(n_envs of ``world``,) the term for its current state (after a step) in the batch rows
-        ``sl``, ``throttle`` the step's T = clip(a_T, 0, 1); 0 for a traffic world."""
+        ``sl``, ``throttle`` the step's a_T (charged as T = clip(a_T, 0, 1)); 0 for a traffic world."""
         out = np.zeros(world.n_envs, dtype=np.float32)
         if world.actors is None:
             return out
