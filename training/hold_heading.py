@@ -73,12 +73,13 @@ class HoldRoad:
             return out
         x0, y0, yaw0 = world.start_pose.T
         dx, dy = world.x[:, 0] - x0, world.y[:, 0] - y0
-        s = dx * np.cos(yaw0) + dy * np.sin(yaw0)  # progress along the road (FastWorld.progress)
         seen = self.seen[sl]  # a view: the latch is updated in place
         todo = np.flatnonzero(~seen)
         if todo.size:
-            ghost = (np.stack([x0 + s * np.cos(yaw0), y0 + s * np.sin(yaw0), yaw0], axis=1)[todo]
-                     if self.ghost else None)
+            ghost = None
+            if self.ghost:  # the ego moved onto its road at its progress along it
+                s, x, y, yaw = world.progress()[todo], x0[todo], y0[todo], yaw0[todo]
+                ghost = np.stack([x + s * np.cos(yaw), y + s * np.sin(yaw), yaw], axis=1)
             seen[todo] = world.seen_by_agent(todo, pose=ghost).any(axis=1)
         cost = self.heading * np.abs(np.angle(np.exp(1j * (world.yaw[:, 0] - yaw0))))
         if self.lateral:
