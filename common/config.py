@@ -485,16 +485,19 @@ class TrainConfig(Section):
     """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
     touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
     scores better; training/expert.Expert)."""
-    expert: Literal["planner", "mirror", "track"] = "planner"
+    expert: Literal["planner", "mirror", "track", "hold"] = "planner"
     """dagger, and overtake with bc_coef: the teacher. planner: the privileged planner
     (training/expert.py); mirror: the ``init_from`` policy itself, its action on the mirrored scan
     in the ``mirror_families`` scenarios and its own action elsewhere (training/mirror.py; with
     bc_coef the mirrored steps and the anchors are labelled, training/imitation_term.py); track:
-    as mirror, with plain tracking of the ego's road at full throttle instead of the mirrored action."""
+    as mirror, with plain tracking of the ego's road at full throttle instead of the mirrored action;
+    hold: plain tracking at full throttle in the ``mirror_families`` scenarios until a car has been in
+    the ego's scan in the episode (whatever its side), the policy's own action elsewhere."""
     mirror_families: str = "cross-left"
-    """dagger or bc_coef with expert mirror or track: the scenario families (comma-separated; a
+    """dagger or bc_coef with expert mirror, track or hold: the scenario families (comma-separated; a
     family of every suite, cross-left, or of one, paper-timed/cross-left) whose steps with a car
-    near on the ego's left are relabelled (mirrored action, or tracking)."""
+    near on the ego's left are relabelled (mirrored action, or tracking); hold: whose steps before
+    any car is seen are relabelled (tracking)."""
     mirror_seen: bool = False
     """dagger or bc_coef with expert mirror or track: label a relabelled (or anchored) step only while its car
     is in the ego's scan, not hidden by the intersection's corners (training/mirror.py)."""

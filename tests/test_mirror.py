@@ -231,6 +231,44 @@ def test_track_teacher_labels_full_throttle_tracking_where_a_seen_car_is_near_on
     env.close()
 
 
+def test_hold_teacher_labels_tracking_until_a_car_has_been_seen_before_the_crossing(crossings):
+    """--expert hold: in a world of the given families, full throttle and the tracking steer on
+    every step before any car has been in the ego's scan this episode (latched, cleared by a new
+    episode) while the ego is short of the crossing's centre; the policy's own action elsewhere."""
+    from racecav.training.expert import tracking_steer
+
+    policy = load_policy("avoid")
+    env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2), seed=5)
+    with pytest.raises(ValueError, match="mirror-seen"):
+        MirrorTeacher(policy, env, ["left-to-right"], seen_only=True, relabel="hold")
+    teacher = MirrorTeacher(policy, env, ["left-to-right"], relabel="hold")
+    (world,) = env.worlds
+    rng = np.random.default_rng(1)
+    for episode in range(2):
+        env.reset()
+        latch = np.zeros(env.num_envs, bool)  # reference: seen at any step so far
+        released = np.zeros(env.num_envs, bool)
+        for k in range(40):
+            raw = env._stacked()
+            fam = np.array(world.scenario_families)[world.scenario_index]  # an auto-reset draws anew
+            latch &= world.time > 0  # ... and starts with nothing seen
+            latch |= world.seen_by_agent(np.arange(env.num_envs)).any(axis=1)
+            labels, mask = teacher.labels(raw)
+            expect = (fam == "left-to-right") & ~latch & (world.x[:, 0] < 0.0)
+            assert np.array_equal(mask, expect), k
+            if k == 0:  # nothing is in view at the start: the car is behind the corner
+                assert mask[fam == "left-to-right"].all()
+            assert np.array_equal(labels[~mask], policy(raw)[~mask])
+            assert (labels[mask, 0] == 1.0).all()
+            assert np.allclose(labels[mask, 1], tracking_steer(world)[mask])
+            released |= (fam == "left-to-right") & latch & (world.x[:, 0] < 0.0)
+            # a slow weaving ego: it sees the car before the crossing, and the steer is not zero
+            env.step(np.stack([np.full(env.num_envs, 0.1), rng.uniform(-0.3, 0.3, env.num_envs)], 1).astype(np.float32))
+        assert released.any()  # a car seen short of the crossing ends the labels there
+    env.close()
+
+
 def test_seen_cars_are_the_ones_in_line_of_sight_and_the_teacher_labels_only_those(crossings):
     """FastWorld.seen_by_agent against plain line of sight: a car whose four corners are all
     behind a wall is never seen, one whose centre is in clear view well inside the field of view

@@ -73,7 +73,7 @@ def imitation_loss(pred, label, lo, hi, scale):
 
 
 def mirror_teacher(tc, fast):
-    """The ``--expert mirror`` (or ``track``) teacher: the frozen ``init_from`` policy (with its
+    """The ``--expert mirror`` (or ``track``, ``hold``) teacher: the frozen ``init_from`` policy (with its
     normalisation) under the run's view settings, relabelled in the ``mirror_families`` scenarios."""
     from racecav.training.mirror import MirrorTeacher
     from racecav.training.select import policy_from_checkpoint
@@ -85,7 +85,7 @@ def mirror_teacher(tc, fast):
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
     return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
-                         relabel="track" if tc.expert == "track" else "mirror")
+                         relabel=tc.expert)
 
 
 class _Stop:
@@ -111,7 +111,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    if tc.expert in ("mirror", "track"):
+    if tc.expert in ("mirror", "track", "hold"):
         experts, teacher = [], mirror_teacher(tc, fast)
     else:
         experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s, seen_only=tc.expert_seen) for w in fast.worlds], None

@@ -54,7 +54,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
     from racecav.training.dagger import mirror_teacher
     from racecav.training.expert import Expert
 
-    mirror = tc.expert in ("mirror", "track")  # the frozen init_from policy, relabelled
+    mirror = tc.expert in ("mirror", "track", "hold")  # the frozen init_from policy, relabelled
 
     class _ImitationTerm(BaseCallback):
         def __init__(self):

@@ -385,7 +385,7 @@ def open_run(args, cfg, run_dir: Path):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
         return None
-    if tc.bc_coef > 0 and tc.expert in ("mirror", "track") and not tc.init_from:
+    if tc.bc_coef > 0 and tc.expert in ("mirror", "track", "hold") and not tc.init_from:
         print(f"racecav train: --bc-coef with --expert {tc.expert} needs --init-from (the frozen teacher)")
         return None
     if tc.bc_coef > 0 and tc.expert == "planner" and tc.bc_label_steps < 1:
