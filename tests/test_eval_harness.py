@@ -210,19 +210,8 @@ def test_table_writes_the_document(tmp_path):
     assert r.returncode == 2 and "nonsense" in r.stderr
 
 
-def test_table_safety_both_runs_every_cell_without_and_with_the_supervisor(tmp_path):
-    doc = tmp_path / "results.md"
-    r = _eval(tmp_path, "--table", "--controllers", "scripted", "--sections", "table1", "--trials", "1",
-              "--safety", "both", "--doc", str(doc), timeout=300)
-    assert r.returncode == 0, r.stdout + r.stderr
-    text = doc.read_text()
-    assert "--safety both" in text and "## Emergency-brake supervisor on/off" in text
-    for sc in ("right-to-left", "head-to-head", "left-to-right"):
-        off = json.loads((tmp_path / "table" / f"scripted-{sc}.json").read_text())
-        on = json.loads((tmp_path / "table" / f"scripted-{sc}-safety.json").read_text())
-        assert off["controller"]["name"] == "scripted" and on["controller"]["name"] == "scripted+safety"
-    row = next(line for line in text.splitlines() if line.startswith("| no evasion") and "->" in line)
-    assert row.count("->") == 3 * 2  # success and collisions, off -> on, per scenario
+def test_safety_both_needs_the_table(tmp_path):
+    """--safety both is a table option (its cells run in test_table_jobs_split_...)."""
     r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "scripted", "--safety", "both")
     assert r.returncode == 2 and "--table" in r.stderr
 
@@ -254,7 +243,14 @@ def test_table_jobs_split_the_controllers_over_processes(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert "job 0: scripted+safety, 6 trials" in r.stdout and "job 1: full-throttle+safety, 6 trials" in r.stdout
     assert "job 2:" not in r.stdout, r.stdout
-    assert "## Emergency-brake supervisor on/off" in doc.read_text()  # written from both rows of each
+    text = doc.read_text()
+    assert "--safety both" in text and "## Emergency-brake supervisor on/off" in text  # from both rows of each
+    for sc in ("right-to-left", "head-to-head", "left-to-right"):  # every cell without and with the supervisor
+        off = json.loads((tmp_path / "two" / "table" / f"scripted-{sc}.json").read_text())
+        on = json.loads((tmp_path / "two" / "table" / f"scripted-{sc}-safety.json").read_text())
+        assert off["controller"]["name"] == "scripted" and on["controller"]["name"] == "scripted+safety"
+    row = next(line for line in text.splitlines() if line.startswith("| no evasion") and "->" in line)
+    assert row.count("->") == 3 * 2  # success and collisions, off -> on, per scenario
     r = _eval(tmp_path, "--table", "--controllers", "scripted", "--jobs", "0", "--doc", str(doc))
     assert r.returncode == 2 and "--jobs" in r.stderr
 
