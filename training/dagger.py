@@ -107,11 +107,12 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     from tqdm import tqdm
 
     from racecav.training.expert import Expert
+    from racecav.training.mirror import RELABELS
 
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    if tc.expert in ("mirror", "track", "hold"):
+    if tc.expert in RELABELS:
         experts, teacher = [], mirror_teacher(tc, fast)
     else:
         experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s, seen_only=tc.expert_seen) for w in fast.worlds], None

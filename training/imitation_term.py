@@ -53,8 +53,9 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
 
     from racecav.training.dagger import mirror_teacher
     from racecav.training.expert import Expert
+    from racecav.training.mirror import RELABELS
 
-    mirror = tc.expert in ("mirror", "track", "hold")  # the frozen init_from policy, relabelled
+    mirror = tc.expert in RELABELS  # the frozen init_from policy, relabelled
 
     class _ImitationTerm(BaseCallback):
         def __init__(self):

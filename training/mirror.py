@@ -45,6 +45,7 @@ def mirror_action(action: np.ndarray) -> np.ndarray:
     return out
 
 
+RELABELS = ("mirror", "track", "hold")  # the --expert teachers that are the init_from policy, relabelled
 NEAR_M = 5.0   # m: an actor this close (about where the crossings' cars come into view) ...
 LEFT_M = 0.3   # m: ... and this far to the ego's left makes the scene a mirrored one
 
@@ -77,8 +78,8 @@ class MirrorTeacher:
 
     def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = (),
                  seen_only: bool = False, relabel: str = "mirror"):
-        if relabel not in ("mirror", "track", "hold"):
-            raise ValueError(f"relabel: mirror | track | hold, not {relabel!r}")
+        if relabel not in RELABELS:
+            raise ValueError(f"relabel: {' | '.join(RELABELS)}, not {relabel!r}")
         if relabel == "hold" and seen_only:
             raise ValueError("--expert hold labels the steps before a car is seen: --mirror-seen contradicts it")
         self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel

@@ -36,6 +36,7 @@ from pathlib import Path
 
 from racecav.common.bench import git_commit
 from racecav.common.lidar import VIEWS
+from racecav.training.mirror import RELABELS
 from racecav.training.runs import load_run_config, save_checkpoint, truncate_csv
 
 log = logging.getLogger("racecav.train")
@@ -385,7 +386,7 @@ def open_run(args, cfg, run_dir: Path):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
         return None
-    if tc.bc_coef > 0 and tc.expert in ("mirror", "track", "hold") and not tc.init_from:
+    if tc.bc_coef > 0 and tc.expert in RELABELS and not tc.init_from:
         print(f"racecav train: --bc-coef with --expert {tc.expert} needs --init-from (the frozen teacher)")
         return None
     if tc.bc_coef > 0 and tc.expert == "planner" and tc.bc_label_steps < 1:
