@@ -122,7 +122,7 @@ class MirrorTeacher:
     def _unseen(self) -> np.ndarray:
         """(N,) bool, relabel hold: the worlds running a file of ``families`` in which no car has
         returned a ray of the ego's scan yet this episode and whose ego is short of the crossing's
-        centre. Call it once per step: it latches."""
+        centre. Call it at every step: the latch must see each step's scan."""
         out = []
         for w, m, seen in zip(self.fast.worlds, self._mirrored, self._seen):
             if m is None:
