@@ -55,6 +55,18 @@ def candidates(car) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
+def latch_seen(world: FastWorld, seen: np.ndarray, envs: np.ndarray) -> np.ndarray:
+    """``seen`` (one bool per world of ``envs``) latched by this step: cleared where a new
+    episode starts, set where a car returns a ray of the ego's scan (FastWorld.seen_by_agent;
+    only the worlds not yet latched are scanned). Call it at every step: the latch must see each
+    step's scan. Returns the new flags."""
+    seen = seen & (world.time[envs] >= 1e-9)  # a new episode: nothing seen yet
+    todo = np.flatnonzero(~seen)
+    if todo.size:
+        seen[todo] = world.seen_by_agent(envs[todo]).any(axis=1)
+    return seen
+
+
 def tracking_steer(p: FastWorld) -> np.ndarray:
     """(N,) the tracking steer action of every world's ego: a damped hold of the ego's initial
     heading in a scenario world, the traffic driver's pure pursuit of the centerline (in the
@@ -169,10 +181,7 @@ class Expert:
         """seen_only: latch, per world, that a car has returned a ray of its ego's scan in this
         episode (once seen, an evasion goes on when the car is out of view). Call it at every
         step when ``act`` labels only some of them."""
-        self.seen[self.src.time[self.envs] < 1e-9] = False  # a new episode
-        todo = np.flatnonzero(~self.seen)
-        if todo.size:
-            self.seen[todo] = self.src.seen_by_agent(self.envs[todo]).any(axis=1)
+        self.seen = latch_seen(self.src, self.seen, self.envs)
 
     def act(self) -> np.ndarray:
         """(n, 2) the best candidate's first action in each planned world: plain tracking unless a

@@ -69,9 +69,10 @@ class MirrorTeacher:
         in the ego's scan in the episode (``--expert hold``). Why: row 31 starts its turn before it
         can see the car, and that turn decides the crossings from the left (its paper-timed
         left-to-right ends in contact in 1 % of the fast-world episodes whose ego is within
-        0.05 rad of its road when the car comes into view, 14-31 % when turned 0.05-0.3 rad left). Before a car
-        is seen the scans of the two timings and of the two sides are the same, so one label fits
-        all. Rows 52-53 of docs/training.md: fitting it moves the answers after the car is seen too.
+        0.05 rad of its road when the car comes into view, 14-31 % when turned 0.05-0.3 rad
+        left). Before a car is seen the scans of the two timings and of the two sides are the
+        same, so one label fits all. Rows 52-53 of docs/training.md: fitting it moves the
+        answers after the car is seen too.
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
@@ -122,16 +123,16 @@ class MirrorTeacher:
     def _unseen(self) -> np.ndarray:
         """(N,) bool, relabel hold: the worlds running a file of ``families`` in which no car has
         returned a ray of the ego's scan yet this episode and whose ego is short of the crossing's
-        centre. Call it at every step: the latch must see each step's scan."""
+        centre. Call it at every step (training/expert.latch_seen)."""
+        from racecav.training.expert import latch_seen
+
         out = []
         for w, m, seen in zip(self.fast.worlds, self._mirrored, self._seen):
             if m is None:
                 out.append(np.zeros(w.n_envs, bool))
                 continue
-            seen[w.time < 1e-9] = False  # a new episode (auto-reset)
-            todo = np.flatnonzero(~seen & m[w.scenario_index])
-            if len(todo):
-                seen[todo] = w.seen_by_agent(todo).any(axis=1)
+            envs = np.flatnonzero(m[w.scenario_index])
+            seen[envs] = latch_seen(w, seen[envs], envs)
             # up to the crossing's centre (every scenario's ego drives along +x to its conflict
             # point at x = 0): past it, holding the start heading means nothing
             out.append(~seen & m[w.scenario_index] & (w.x[:, 0] < 0.0))
