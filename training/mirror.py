@@ -67,12 +67,9 @@ class MirrorTeacher:
         a straight ego passes ahead of, which the policy turns into); hold: plain tracking at full
         throttle on every step of a ``families`` scenario before a car (on either side) has been
         in the ego's scan in the episode (``--expert hold``). Why: row 31 starts its turn before it
-        can see the car, and that turn decides the crossings from the left (its paper-timed
-        left-to-right ends in contact in 1 % of the fast-world episodes whose ego is within
-        0.05 rad of its road when the car comes into view, 14-31 % when turned 0.05-0.3 rad
-        left). Before a car is seen the scans of the two timings and of the two sides are the
-        same, so one label fits all. Rows 52-53 of docs/training.md: fitting it moves the
-        answers after the car is seen too.
+        can see the car, and that turn decides the crossings from the left; before a car is seen
+        the scans of the two timings and of the two sides are the same, so one label fits all.
+        Rows 52-53 of docs/training.md: fitting it moves the answers after the car is seen too.
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
