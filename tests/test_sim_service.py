@@ -162,18 +162,21 @@ def test_policy_stack_restarts_at_a_sim_reset(spawn, session):
     procs.wait_alive(session, "car0", "sim", proc=sim)
     ctl = spawn("policy", "--model", "avoid")
 
-    def answered(n):
+    def answered(seq):
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             with lock:
-                if len({c.scan_seq for c in got["cmd"]}) >= n:
+                if any(c.scan_seq >= seq for c in got["cmd"]):
                     return
             time.sleep(0.05)
-        raise TimeoutError(f"fewer than {n} commands")
+        raise TimeoutError(f"no command for scan {seq} or later")
 
-    answered(10)
-    query_message(session, "car0", "sim", "reset", {"seed": 2})
-    answered(15)
+    answered(9)
+    query_message(session, "car0", "sim", "reset", {"seed": 2})  # replies once the sim loop has reset
+    time.sleep(0.2)  # the scan in flight arrives
+    with lock:  # lockstep: the sim's next scan waits for this one's command, so every scan up
+        last = max(s.seq for s in got["scan"])  # to a later answered one was answered too
+    answered(last + 3)  # the reset's first scan is at most last + 1
     procs.stop(ctl)
     procs.stop(sim)
     for s in subs:
