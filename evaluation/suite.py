@@ -81,18 +81,25 @@ class Common(_Strict):
     margin_s: float = Field(3.0, ge=0)
     progress_past_m: float = Field(1.5, ge=0)
     start_s: Range = (0.0, 4.0)     # clock-timed families: the actor starts after this delay
+    duration_s: Range | None = None
+    """Episode length, drawn; default: the time a 0.6 m/s ego needs to its point + margin_s (a free
+    road needs no slow-ego margin: its episode ends once the ego is through the crossing)."""
 
     @model_validator(mode="after")
     def _ranges(self) -> "Common":
         _check_ranges(self)
         if self.sync_speed[0] <= 0 or self.ego_distance_m[0] <= 0 or self.obstacle_distance_m[0] <= 0:
             raise ValueError("sync_speed, ego_distance_m, obstacle_distance_m: must be positive")
+        if self.duration_s is not None and self.duration_s[0] <= 0:
+            raise ValueError("duration_s: must be positive")
         return self
 
 
 class Family(_Strict):
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9-]*$")
-    kind: Literal["crossing", "head_on", "turning", "braking", "stopped", "staggered"]
+    kind: Literal["crossing", "head_on", "turning", "braking", "stopped", "staggered", "empty"]
+    """empty: no other car, the road is free (for training mixes: what a policy does when nothing
+    is there to avoid)."""
     world: str
     weight: float = Field(1.0, gt=0)
     timing: Literal["ego", "clock", "paper"] = "ego"
@@ -139,6 +146,10 @@ class FamilyFile(_Strict):
             raise ValueError("families: at least one")
         if len(set(names)) != len(names):
             raise ValueError(f"families: duplicate names in {names}")
+        empty = [f.name for f in self.families if f.kind == "empty"]
+        if empty and self.validate_conflicts:
+            raise ValueError(f"families {', '.join(empty)}: kind \"empty\" has no conflict; "
+                             "set validate = false (a training mix, not a benchmark)")
         return self
 
 
@@ -188,6 +199,7 @@ class Draw:
     ego: dict
     obstacles: list[dict]
     ego_distance: float
+    duration: float | None = None
 
 
 def _actor(x, y, yaw, speed, path=(), start=None, sync=None, changes=()) -> dict:
@@ -299,20 +311,30 @@ def draw(rng: np.random.Generator, c: Common, f: Family) -> Draw:
         obs.append(_crossing_actor(rng, c, f, p1, "right", 90.0))
         obs.append(_crossing_actor(rng, c, f, p2, "left", 90.0))
         de = de - gap / 2
-    return Draw(ego=ego, obstacles=obs, ego_distance=de)
+    # "empty": no actor; the ego's start is drawn as for the others
+    return Draw(ego=ego, obstacles=obs, ego_distance=de,
+                duration=None if c.duration_s is None else _u(rng, c.duration_s))
+
+
+def _description(f: Family) -> str:
+    if f.kind == "empty":
+        return f"free road, family {f.name}: no other car"
+    if f.timing == "ego":
+        return (f"conflict suite, family {f.name} ({f.kind}): timed by the ego; "
+                "a non-evading ego collides at 1 m/s and at full throttle")
+    if f.timing == "paper":
+        return (f"traffic, family {f.name} ({f.kind}): timed like the paper's Table 1 (meets an ego "
+                "holding its start speed); a faster or evading ego may pass")
+    return f"traffic, family {f.name} ({f.kind}): timed by the clock; may or may not conflict"
 
 
 def scenario_data(d: Draw, c: Common, f: Family, name: str) -> dict:
     """The scenario file's fields."""
     return {
         "name": name,
-        "description": (f"conflict suite, family {f.name} ({f.kind}): timed by the ego; "
-                        "a non-evading ego collides at 1 m/s and at full throttle") if f.timing == "ego" else
-                       (f"traffic, family {f.name} ({f.kind}): timed like the paper's Table 1 (meets an ego "
-                        "holding its start speed); a faster or evading ego may pass") if f.timing == "paper" else
-                       f"traffic, family {f.name} ({f.kind}): timed by the clock; may or may not conflict",
+        "description": _description(f),
         "world": f.world,
-        "duration_s": _r(d.ego_distance / 0.6 + c.margin_s),
+        "duration_s": _r(d.ego_distance / 0.6 + c.margin_s if c.duration_s is None else d.duration),
         "ego": d.ego,
         "obstacles": d.obstacles,
         "randomize": {"ego_xy": 0.05, "ego_yaw_deg": 0.5, "ego_speed": 0.05, "obstacle_xy": 0.05,

@@ -219,6 +219,44 @@ def test_paper_timed_family_meets_an_ego_holding_its_start_speed(tmp_path):
     assert all(hits), hits
 
 
+def test_open_suite_is_a_free_road_that_a_straight_ego_drives_through(tmp_path):
+    """kind = "empty": no actor, the drawn episode length; a straight ego at full throttle meets
+    every file's progress in its time, one at 1 m/s none (so a detour shows as a failure)."""
+    from racecav.common.scenario import scenario_sources
+
+    ff = S.load_families("open")
+    S.generate(ff, tmp_path, n_test=2, n_train=12, seed=5, progress=False)
+    scs = [load_scenario(f) for f, _ in scenario_sources(tmp_path, "train")]
+    assert len(scs) == 12 and all(not sc.obstacles for sc in scs)
+    lo, hi = ff.common.duration_s
+    assert all(lo <= sc.duration_s <= hi for sc in scs), [sc.duration_s for sc in scs]
+    from racecav.common.vehicle import load_car, throttle_for_speed
+    from racecav.sim.fast_world import FastWorld
+
+    car = load_car()
+    for thr, passes in ((1.0, True), (float(throttle_for_speed(1.0, car, car.agent_speed_scale)), False)):
+        fw = FastWorld(n_envs=len(scs), scenarios=scs, car=car, seed=3)
+        fw.scenario_of_env = np.arange(len(scs))
+        fw.reset()
+        x0 = fw.agent_state()[:, 0].copy()
+        live = np.ones(len(scs), bool)
+        progress = np.zeros(len(scs))
+        while live.any():
+            _, _, c, _ = fw.step(np.tile([thr, 0.0], (len(scs), 1)))
+            assert not (c & live).any()
+            progress[live] = fw.agent_state()[live, 0] - x0[live]
+            live &= fw.time < fw.time_limit - 1e-9
+        need = np.array([sc.success.min_progress_m for sc in scs])
+        assert ((progress >= need) == passes).all(), (thr, progress - need)
+
+
+def test_empty_family_is_refused_in_a_benchmark(tmp_path):
+    p = tmp_path / "fam.toml"
+    p.write_text((S.SUITES_DIR / "open.toml").read_text().replace("validate = false", "validate = true"))
+    with pytest.raises(ValueError, match="empty"):
+        S.load_families(p)
+
+
 def test_paper_timing_is_for_crossing_and_head_on_kinds(tmp_path):
     text = (S.SUITES_DIR / "paper-timed.toml").read_text()
     p = tmp_path / "fam.toml"
