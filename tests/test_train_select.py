@@ -34,13 +34,20 @@ def test_select_keeps_family_columns(tmp_path, monkeypatch):
     assert main(["train", "overtake", "--steps", "256", "--run-dir", str(run), *TINY, "--world", "figure8",
                  "--heading", "reversed", "--n-obstacles", "0", "--scenarios", str(scen),
                  "--scenario-share", "1.0", "--curriculum", "--curriculum-boost", "right-to-left=2"]) == 0
+    from racecav.evaluation import suite as S
+
+    free = tmp_path / "open"  # the free-road column: a generated suite of intersections with no car
+    S.generate(S.load_families("open"), free, n_test=1, n_train=4, seed=1, progress=False)
+    assert select.free_suite_or_none(str(tmp_path / "not-generated")) is None  # skipped, with a warning
     sel = ["train", "select", "--run-dir", str(run), "--trials", "1", "--episodes", "2", "--suite-episodes", "8",
-           "--last", "1"]
+           "--last", "1", "--free-suite", str(free)]
     assert main(sel) == 0
     fields, rows = _eval_rows(run)
     fams = [c for c in fields if c.startswith("suite_") and c not in ("suite_success", "suite_episodes")]
     assert fams and rows and all(rows[-1][c] != "" for c in fams), (fields, rows)
     assert 0.0 <= float(rows[-1]["score"]) <= 1.0
+    # 4 fast-world episodes (half of --suite-episodes) on the free roads
+    assert float(rows[-1]["free_success"]) in (0.0, 0.25, 0.5, 0.75, 1.0), rows[-1]
 
     # nothing new to evaluate: the stored row, its family columns included, stays as it was
     assert main(sel) == 0
@@ -48,6 +55,14 @@ def test_select_keeps_family_columns(tmp_path, monkeypatch):
     assert fields2 == fields and rows2 == rows
     record = tmp_path / "committed" / run.name
     assert (record / "eval.csv").is_file()
+
+    # a row evaluated before the free column: the column alone is added, the rest stays as it was
+    with (run / "eval.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fields)
+        w.writeheader()
+        w.writerows([{**r, "free_success": ""} for r in rows])
+    assert main(sel) == 0
+    assert _eval_rows(run) == (fields, rows)
 
     # --no-record: a scratch evaluation leaves the committed records alone
     shutil.rmtree(record)
