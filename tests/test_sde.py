@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
+import pytest
 import torch
 
 FLAGS = ["--preset", "fast", "--n-envs", "8", "--n-steps", "16", "--batch-size", "64", "--n-epochs", "2",
@@ -44,7 +46,36 @@ def test_a_gsde_run_starts_from_a_policy_with_its_means_and_the_asked_std(tmp_pa
     assert main(["train", "overtake", "--run-dir", str(run), "--steps", "128", *flags]) == 0
     assert main(["train", "overtake", "--run-dir", str(run), "--steps", "256", "--resume", "--no-progress"]) == 0
     assert json.loads((run / "config.json").read_text())["sde_sample_freq"] == 8
-    assert PPO.load(run / "latest.zip", device="cpu").use_sde
+    model = PPO.load(run / "latest.zip", device="cpu")
+    assert model.use_sde
+    # progress.csv's std column is the action std the run explored with (0.3 asked), not SB3's
+    # train/std, the noise weights' mean (about 0.3 / |latent| here)
+    with (run / "progress.csv").open() as f:
+        stds = [float(r["std"]) for r in csv.DictReader(f)]
+    weights_mean = float(model.policy.log_std.detach().exp().mean())
+    assert len(stds) == 2 and all(0.2 < v < 0.4 for v in stds), stds
+    assert weights_mean < 0.15, weights_mean  # so the check above tells the two apart
+
+
+def test_action_std_is_the_spread_of_the_sampled_gsde_actions():
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from racecav.training.train import action_std, calibrate_sde
+
+    model = PPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=1, seed=0), use_sde=True, device="cpu", seed=0)
+    obs = np.random.default_rng(0).normal(size=(16, 3)).astype(np.float32)
+    calibrate_sde(model, obs, 0.5)
+    policy, o = model.policy, torch.as_tensor(obs)
+    draws = []
+    with torch.no_grad():
+        for _ in range(4000):  # a fresh noise matrix each draw, as every sde_sample_freq steps in a run
+            policy.reset_noise(1)
+            draws.append(policy.get_distribution(o).get_actions(deterministic=False))
+    spread = torch.stack(draws).std(0)  # (obs, action): the std over the noise draws
+    measured = float(spread.pow(2).mean(0).sqrt().mean())
+    assert action_std(policy, obs) == pytest.approx(measured, rel=0.05)
+    assert action_std(policy, obs) == pytest.approx(0.5, rel=1e-3)  # calibrate_sde's definition
 
 
 def test_a_gsde_policy_into_one_without_needs_an_std(tmp_path):

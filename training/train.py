@@ -616,6 +616,18 @@ def calibrate_sde(model, obs, std) -> None:
     policy.reset_noise(model.n_envs)
 
 
+def action_std(policy, obs) -> float:
+    """The action std that progress.csv's std column reports: the std of each action, RMS over the
+    normalised observations ``obs`` (with gSDE it depends on the observation; without, it does
+    not), averaged over the actions. SB3's own ``train/std`` is the noise weights' mean under
+    gSDE, which is not an action std."""
+    import torch
+
+    with torch.no_grad():
+        std = policy.get_distribution(torch.as_tensor(obs, dtype=torch.float32)).distribution.stddev
+    return float(std.pow(2).mean(0).sqrt().mean())
+
+
 def _configure_logger(model, run_dir: Path) -> None:
     """SB3 logger: our CSV (appending across resumes) + TensorBoard if installed."""
     from stable_baselines3.common.logger import Logger
@@ -720,10 +732,14 @@ def _make_callback_class():
             self._rate_t, self._rate_n = now, self.model.num_timesteps
             buf = self.model.ep_info_buffer
             ep = float(sum(e["r"] for e in buf) / len(buf)) if buf else float("nan")
+            extra = {"wall_s": round(self.wall(), 2), "samples_per_s": round(rate, 1), "ep_count": self.episodes}
+            if self.model.use_sde:  # the policy's action std on this rollout (before its update)
+                obs = self.model.rollout_buffer.observations
+                obs = obs.reshape(-1, obs.shape[-1])
+                extra["std"] = round(action_std(self.model.policy, obs[:: max(1, len(obs) // 1024)]), 5)
             for fmt in self.model.logger.output_formats:
                 if isinstance(fmt, _CSV_CLASS):
-                    fmt.extra = {"wall_s": round(self.wall(), 2), "samples_per_s": round(rate, 1),
-                                 "ep_count": self.episodes}
+                    fmt.extra = extra
             self.episodes = 0
             self._log_curriculum()
             if self.bar is not None:
