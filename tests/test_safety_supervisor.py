@@ -177,7 +177,11 @@ def test_supervisor_does_not_brake_while_a_policy_laps_the_empty_racetrack(spawn
     # progress, and the first failing line should name the cause
     assert s["scans"] >= 290 and s["brakes"] == 0 and info["safety_brakes"] == 0, (info, s)
     assert info["safety_verdict_timeouts"] == 0, info
-    assert not info["collided"] and info["progress_m"] > 40.0, (info, s)
+    # a short lap once failed here under a loaded fresh-clone run (37.1 m, no collision): name what
+    # a slow lap in lockstep can come from (late commands, lost scans), not the whole truncated dict
+    brief = {k: info[k] for k in ("t", "steps", "progress_m", "collided", "contact_with", "stale_commands",
+                                  "lockstep_republish", "overruns", "watchdog_brakes")}
+    assert not info["collided"] and info["progress_m"] > 40.0, f"{brief} policy: {get_status(session, 'car0', 'policy').info}"
 
 
 def test_only_the_safety_account_may_brake(tmp_path):
