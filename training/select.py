@@ -1578,21 +1578,21 @@ def _ablation_markdown() -> str:
           "about 3 m before the conflict-timed crossing and 2 m before the paper-timed one "
           "(FastWorld.seen_by_agent), and the privileged planner held straight to 2 m still passes both "
           "timings (the probe's table below), so stopping for a car seen close to the crossing and driving "
-          "on for one seen far up the crossing road would pass both. PPO does not find it: row 31's brief "
-          "coasting (a_T < -0.5) now brakes, and the run learns to brake less, not at the right time. "
+          "on for one seen far up the crossing road would pass both. PPO does not find it. "
           "8.0 M samples in 22 min; its 6 evaluated checkpoints (1-7 M): conflict-timed 93-99 / 72-87 / 60-83 %, "
           "paper-timed 96-99 / 92-99 / 59-76 %, suite 79-82 %, lowest family 51-66 %, free column 5-18 %, "
           "scores 0.82-0.84 (row 56 over the same checkpoints: 0.86-0.91), 2 of the 8 targets. Stopped, "
           "rejected. Row 58 (avoid-gsde-brake) gives the brake to row 31 alone (`--brake-below -0.5`, row 31's "
           "flags and mix, from its 5 M), without the free intersections and the charge that cost row 57 its "
-          "conflicts. It starts lower (1-2 M: the paper-timed left-to-right at 40-44 %: the brief coasting "
-          "of row 31 now brakes) and recovers row 31's level in 4 M samples, without using the brake much. "
+          "conflicts. It starts lower (1-2 M: the paper-timed left-to-right at 40-44 %; with the brake, "
+          "row 31's own actions below -0.5 stop the car where they used to coast) and is back at row 31's "
+          "level after 4 M samples. "
           "17.5 M samples in 47 min; its 16 evaluated checkpoints (1-17.5 M): conflict-timed 92-99 / 82-97 / "
           "83-96 %, paper-timed 95-100 / 81-100 / 40-87 %, suite 85-93 %, lowest family 62-82 % (82 % at 10 M, "
           "the highest of any row), free column 1-7 %, scores 0.83-0.92 (0.922 at 8 M: 98 / 94 / 94 | 97 / 95 / "
           "81 %; the table shows 16 M, in the same 0.05 step of the score with a higher suite); 7 of the 8 targets at 5 M (paper-timed left-to-right 71 %), at most 6 elsewhere. Stopped, "
-          "rejected: the paper-timed left-to-right stays below row 31's 83 %. A policy that already hedges "
-          "with a turn keeps the turn, brake or not; the straight approach with a late stop stays unlearnt. ", ""]
+          "rejected: the paper-timed left-to-right stays below row 31's 83 %. Started from a policy that "
+          "hedges with a turn, neither row learns the straight approach with a late stop. ", ""]
     L += ["![the paths of row 38](img/training_paths_mirrorbc_wide.png)", "",
           "Row 38's last checkpoint: `racecav train paths --policy training/checkpoints/avoid-gsde-mirrorbc-wide/latest.zip "
           "--trials 10 --out docs/img/training_paths_mirrorbc_wide.png`.", "",
