@@ -46,8 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--suite: trials per scenario file (default 5: 100 per family of 20 files)")
     p.add_argument("--table", action="store_true",
                    help="every controller x the three intersection scenarios; writes docs/results.md")
-    p.add_argument("--sections", help="--table: comma-separated subset of table1,conflict,suite (default all: "
-                   "the paper's Table 1, the conflict-timed paper scenarios, the suite's test split per family)")
+    p.add_argument("--sections", help="--table: comma-separated subset of table1,conflict,suite,free (default "
+                   "all: the paper's Table 1, the conflict-timed paper scenarios, the conflict suite's test split "
+                   "per family, the open suite's test split: free intersections)")
     p.add_argument("--controllers", help="--table: comma-separated subset "
                    "(default: mpc-apf,drl-default,drl-reversed,scripted,full-throttle,mpc-apf-fast)")
     p.add_argument("--trials", type=int, help="trials per scenario (default 10; --table: 100)")
@@ -60,9 +61,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jsonl", type=Path, help="per-trial progress file (default: the --json path with .jsonl)")
     p.add_argument("--plot", type=Path, help="trajectory plot PNG (default: the --json path with .png)")
     p.add_argument("--plot-trials", type=int, default=3, help="trials shown in the trajectory plot")
-    p.add_argument("--resume", action="store_true", help="continue from the trials already in the JSONL")
+    p.add_argument("--resume", action="store_true", help="continue from the trials already in the JSONL "
+                   "(--table: and from the committed cells of --store)")
     p.add_argument("--out-dir", type=Path, default=OUT_DIR, help="where runs, logs and JSONL files go")
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"), help="--table: the document written")
+    p.add_argument("--store", type=Path, help="--table: the committed store of complete cells that --resume "
+                   "reuses and every complete cell is written to (default: results-data/ beside --doc; "
+                   "evaluation/store.py)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--jobs", type=int, default=1,
                    help="--table: run the (controller, safety) rows in a pool of N processes (each about "

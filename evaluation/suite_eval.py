@@ -38,15 +38,20 @@ def suite_cells(spec: str, split: str) -> tuple[str, list[Cell]]:
     return s.manifest["name"], [Cell(p, fam) for p, fam in s.files(split)]
 
 
-def run_cells(h, cells: list[Cell], k: int, seed: int, out: Path, resume: bool, bar) -> tuple[dict, BaseException | None]:
-    """Run ``k`` trials of every cell on an open harness; returns ({file: RunResult}, error)."""
+def run_cells(h, cells: list[Cell], k: int, seed: int, out: Path, resume: bool, bar,
+              store=None) -> tuple[dict, BaseException | None]:
+    """Run ``k`` trials of every cell on an open harness; returns ({file: RunResult}, error).
+
+    :param store: (CellStore, row, group): the table's committed cells (trials.run_trials).
+    """
     from racecav.evaluation.trials import run_trials
 
     results = {}
     for c in cells:
         ref = str(c.path.resolve())
         res, error = run_trials(h, ref, c.path.resolve(), k, seed, out / f"{c.path.stem}.jsonl", resume,
-                                bar=bar, keep_trajectory=False)
+                                bar=bar, keep_trajectory=False,
+                                store=None if store is None else (*store, c.path.name))
         results[c.path.name] = res
         if error is not None:
             return results, error

@@ -1,10 +1,13 @@
 """``racecav eval --table``: the paper's Table 1 regenerated, written to docs/results.md.
 
 Every controller runs the three intersection scenarios, N seeded trials each (the same seeds
-for every controller: paired trials), through the real services (one harness per controller:
-router + sim + controller processes; the scenario switches through the sim's queryable). Each
-cell keeps its per-trial JSONL under runs/eval/table/, so ``--resume`` continues an interrupted
-table; cells that did not finish are marked partial in the document.
+for every controller: paired trials), their conflict-timed versions, the conflict suite's test
+split and the open suite's (free intersections), through the real services (one harness per
+controller: router + sim + controller processes; the scenario switches through the sim's
+queryable). Each cell keeps its per-trial JSONL under runs/eval/table/, so ``--resume`` continues
+an interrupted table; cells that did not finish are marked partial in the document. Every
+complete cell also goes to the committed store (evaluation/store.py, docs/results-data/), which
+``--resume`` reuses: a fresh clone rewrites the document without rerunning what is stored.
 
 ``--safety on`` runs every controller with the emergency-brake supervisor (``racecav safety``, a
 brake input of the sim's mux), ``--safety both`` without and with it on the same seeds: the
@@ -14,6 +17,7 @@ document then gets the supervisor's on/off table (success and collisions per cel
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import json
 import sys
@@ -22,13 +26,18 @@ from pathlib import Path
 
 from racecav.common import registry
 from racecav.common.config import Config
+from racecav.evaluation.store import CellStore
 
 SCENARIOS = registry.PAPER_SCENARIOS
 CONFLICT = registry.CONFLICT_SCENARIOS
 SHORT = registry.SHORT
 PAPER_TABLE1 = registry.PAPER_TABLE1
-SECTIONS = ("table1", "conflict", "suite")
+SECTIONS = ("table1", "conflict", "suite", "free")
 IMG_DIR = Path("docs/img")
+# the suite sections: (suite, its `racecav suite generate` --n, --n-train, --seed), made on first use
+# exactly as docs/world.md documents them; --suite replaces the conflict suite
+SUITE_SECTIONS = {"suite": ("conflicts", 140, 1400, 0), "free": ("open", 20, 200, 3)}
+STORE_NAME = "results-data"  # the committed cell store, beside the document (evaluation/store.py)
 
 
 def _label(key: str) -> str:
@@ -89,21 +98,22 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print("(evaluate the others with --controllers " + ",".join(n for n in names if n not in absent) + ")",
               file=sys.stderr)
         return 2
-    suite_cells_ = []
-    if "suite" in sections:
+    suites: dict[str, tuple[str, list]] = {}  # section -> (suite name, test cells)
+    for sec in (x for x in SUITE_SECTIONS if x in sections):
+        from racecav.common.scenario import SUITES_RUNS_DIR
+        from racecav.evaluation import suite as S
         from racecav.evaluation.suite_eval import suite_cells
 
+        spec, n, n_train, seed = SUITE_SECTIONS[sec]
         try:
-            if args.suite is None:  # the default suite: made on first use, exactly as documented
-                from racecav.common.scenario import SUITES_RUNS_DIR
-                from racecav.evaluation import suite as S
-
-                if not (SUITES_RUNS_DIR / "conflicts" / "suite.json").is_file():
-                    print("racecav eval --table: generating the conflict suite first "
-                          "(racecav suite generate --name conflicts --n 140 --n-train 1400 --seed 0)")
-                    S.generate(S.load_families("conflicts"), SUITES_RUNS_DIR / "conflicts", 140, 1400, 0,
-                               progress=not args.no_progress)
-            suite_name, suite_cells_ = suite_cells(args.suite or "conflicts", "test")
+            if sec == "suite" and args.suite is not None:
+                spec = args.suite
+            elif not (SUITES_RUNS_DIR / spec / "suite.json").is_file():
+                print(f"racecav eval --table: generating the {spec} suite first "
+                      f"(racecav suite generate --name {spec} --n {n} --n-train {n_train} --seed {seed})")
+                S.generate(S.load_families(spec), SUITES_RUNS_DIR / spec, n, n_train, seed,
+                           progress=not args.no_progress)
+            suites[sec] = suite_cells(spec, "test")
         except ValueError as e:
             print(f"racecav eval --table: {e}", file=sys.stderr)
             return 2
@@ -117,18 +127,25 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     scen = (list(SCENARIOS) if "table1" in sections else []) + (list(CONFLICT) if "conflict" in sections else [])
     seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in scen}
     k_suite = args.trials_per_scenario
+    try:
+        store = CellStore(_store_dir(args))
+        cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store) for n, on in runs}
+    except ValueError as e:  # a broken store file
+        print(f"racecav eval --table: {e}", file=sys.stderr)
+        return 2
     results: dict[tuple[str, str], object] = {}
-    suite_results: dict[str, dict] = {}
+    suite_results: dict[str, dict[str, dict]] = {sec: {} for sec in suites}
     wall0 = time.monotonic()
     error = None
-    total = len(runs) * (len(scen) * trials + len(suite_cells_) * k_suite)
+    per_run = len(scen) * trials + sum(len(c) for _, c in suites.values()) * k_suite
+    total = len(runs) * per_run
     jobs = min(getattr(args, "jobs", 1), len(runs))
     if jobs > 1:  # the cells are computed by child tables; the pass below reads them and writes the doc
-        suite_dir = out / f"suite-{suite_name}" if suite_cells_ else None
-        rc = _run_jobs(args, runs, jobs, trials, sections, scen, suite_dir, total // len(runs), out, total)
+        rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total)
         if rc != 0:
             return rc
         args.resume = True
+        cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store) for n, on in runs}
     bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="table", dynamic_ncols=True,
                                                  mininterval=1.0)
     try:
@@ -136,23 +153,33 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
             ctrl = CONTROLLERS[name]
             key = name + ("+safety" if on else "")  # as run_trials names it
             bar.set_description_str(key)
-            first = scen[0] if scen else str(suite_cells_[0].path.resolve())
+            if all(c.stored is not None for c in cells[(name, on)]):  # a committed row: no services needed
+                for c in cells[(name, on)]:
+                    bar.update(c.trials)
+                    if c.section in suites:
+                        suite_results[c.section].setdefault(key, {})[c.cell] = c.stored
+                    else:
+                        results[(key, c.cell)] = c.stored
+                        write_json(c.stored, out / f"{_stem(name, c.cell, args.mode, on)}.json")
+                continue
+            first = scen[0] if scen else str(next(iter(suites.values()))[1][0].path.resolve())
             try:
                 with Harness(cfg, ctrl, args.mode, first, out / "logs" / key, args.real_time_factor, safety=on) as h:
                     for sc in scen:
                         stem = _stem(name, sc, args.mode, on)
                         res, error = run_trials(h, sc, SCENARIOS_DIR / f"{sc}.toml", trials, seeds[sc],
-                                                out / f"{stem}.jsonl", args.resume, bar=bar)
+                                                out / f"{stem}.jsonl", args.resume, bar=bar,
+                                                store=(store, key, "scenarios", sc))
                         results[(key, sc)] = res
                         write_json(res, out / f"{stem}.json")
                         if error is not None:
                             raise error
-                    if suite_cells_:
+                    for sec, (suite_name, suite_cells_) in suites.items():
                         from racecav.evaluation.suite_eval import run_cells
 
-                        suite_results[key], error = run_cells(
+                        suite_results[sec][key], error = run_cells(
                             h, suite_cells_, k_suite, args.seed or 0, out / f"suite-{suite_name}" / key,
-                            args.resume, bar)
+                            args.resume, bar, store=(store, key, f"suite-{suite_name}"))
                         if error is not None:
                             raise error
             except HarnessError as e:
@@ -163,18 +190,20 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     finally:
         bar.close()
     wall = time.monotonic() - wall0
-    suite = None
-    if suite_cells_:
+    docs: dict[str, dict] = {}
+    for sec, (suite_name, suite_cells_) in suites.items():
         from racecav.evaluation.suite_eval import suite_json
 
         # wall: the trials' own, summed (cells may come from several resumed invocations)
-        suite = {n: suite_json(suite_name, "test", n, k_suite, args.seed or 0, suite_cells_, r,
-                               sum(t.wall_s for c in r.values() for t in c.trials), None)
-                 for n, r in suite_results.items()}
-        for n, doc_ in suite.items():
+        docs[sec] = {n: suite_json(suite_name, "test", n, k_suite, args.seed or 0, suite_cells_, r,
+                                   sum(t.wall_s for c in r.values() for t in c.trials), None)
+                     for n, r in suite_results[sec].items()}
+        for n, doc_ in docs[sec].items():
+            (out / f"suite-{suite_name}").mkdir(parents=True, exist_ok=True)
             (out / f"suite-{suite_name}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
     keys_ = [n + ("+safety" if safety == "on" else "") for n in names]  # the main tables' rows
-    doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections, suite=suite)
+    doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections,
+                            suite=docs.get("suite"), free=docs.get("free"))
     for name in keys_:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
         print(f"{_label(name):34s} " + "  ".join(
@@ -186,9 +215,56 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+@dataclasses.dataclass(frozen=True)
+class RowCell:
+    """One cell of a table row: a scenario ("scenarios" section) or a suite section's file."""
+
+    section: str
+    cell: str
+    """The scenario's name, or the suite file's name."""
+    trials: int
+    jsonl: Path
+    """Its resumable per-trial records under --out-dir."""
+    stored: object = None
+    """The committed complete cell (RunResult) when --resume may use it, else None."""
+
+
+def _row_cells(name: str, on: bool, scen: list[str], seeds: dict, trials: int, suites: dict, k: int, args,
+               out: Path, store: CellStore) -> list[RowCell]:
+    """Every cell of the row (controller ``name``, supervisor ``on``), with what the store holds of it."""
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.evaluation.harness import CONTROLLERS
+    from racecav.evaluation.trials import cell_key
+
+    ctrl, row = CONTROLLERS[name], name + ("+safety" if on else "")
+    seed = args.seed or 0
+
+    def stored(group: str, cell: str, path: Path, base_seed: int, n: int):
+        if not args.resume:
+            return None
+        return store.get(row, group, cell, cell_key(ctrl, on, args.mode, path, base_seed), n)
+
+    cells = [RowCell("scenarios", sc, trials, out / f"{_stem(name, sc, args.mode, on)}.jsonl",
+                     stored("scenarios", sc, SCENARIOS_DIR / f"{sc}.toml", seeds[sc], trials)) for sc in scen]
+    for sec, (suite_name, files) in suites.items():
+        cells += [RowCell(sec, c.path.name, k, out / f"suite-{suite_name}" / row / f"{c.path.stem}.jsonl",
+                          stored(f"suite-{suite_name}", c.path.name, c.path.resolve(), seed, k)) for c in files]
+    return cells
+
+
+def _done(cells: list[RowCell]) -> int:
+    """Trials a row already has: its stored cells whole, the others' JSONL lines."""
+    return sum(c.trials if c.stored is not None else min(_lines(c.jsonl), c.trials) for c in cells)
+
+
 def _stem(name: str, sc: str, mode: str, on: bool) -> str:
     """A cell's file stem in OUT/table (its .json and resumable .jsonl)."""
     return f"{name}-{sc}" + ("" if mode == "lockstep" else f"-{mode}") + ("-safety" if on else "")
+
+
+def _store_dir(args) -> Path:
+    """--store, default docs/results-data beside the document."""
+    return (getattr(args, "store", None) or Path(args.doc).parent / STORE_NAME).resolve()
 
 
 def _lines(path: Path) -> int:
@@ -199,13 +275,13 @@ def _lines(path: Path) -> int:
         return sum(1 for _ in f)
 
 
-def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sections: list[str], scen: list[str],
-              suite_dir: Path | None, per_run: int, out: Path, total: int) -> int:
+def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sections: list[str], cells: dict,
+              per_run: int, out: Path, total: int) -> int:
     """``--jobs N``: a pool of N child ``racecav eval --table`` processes (each with its own router,
     sim and controller: about one core each), one per (controller, safety) row, the rows with the
     most trials left first, so that the pool ends on short ones and no core idles for long. They
-    write the same cells one process would. Returns 0 once every child finished its cells;
-    otherwise the first failing child's code (its output: OUT/table/logs/job-K.log)."""
+    write the same cells one process would (and the same store). Returns 0 once every child
+    finished its cells; otherwise the first failing child's code (its output: OUT/table/logs/job-K.log)."""
     import os
 
     from tqdm import tqdm
@@ -224,27 +300,24 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
     rows = []  # (trials left, controller, safety on, row key)
     for name, on in runs:
         key = name + ("+safety" if on else "")
-        done = 0
-        if args.resume:  # else every cell starts over
-            done = sum(_lines(out / f"{_stem(name, sc, args.mode, on)}.jsonl") for sc in scen)
-            if suite_dir is not None:
-                done += sum(_lines(p) for p in (suite_dir / key).glob("*.jsonl"))
+        done = _done(cells[(name, on)]) if args.resume else 0  # else every cell starts over
         if per_run - done > 0:
             rows.append((per_run - done, name, on, key))
     rows.sort(key=lambda r: -r[0])  # stable: equal rows keep the --controllers order
     pending = list(enumerate(rows))
     running: dict[int, object] = {}
     failed: list[tuple[int, str, int]] = []
-    bar = None if args.no_progress else tqdm(total=total, initial=min(sum(_lines(p) for p in out.rglob("*.jsonl")),
-                                                                       total),
-                                             unit="trial", desc=f"table ({jobs} jobs)", dynamic_ncols=True)
+    every = [c for row in cells.values() for c in row]
+    bar = None if args.no_progress else tqdm(total=total, initial=_done(every), unit="trial",
+                                             desc=f"table ({jobs} jobs)", dynamic_ncols=True)
     try:
         while pending or running:
             while pending and len(running) < jobs:
                 k, (left, name, on, key) = pending.pop(0)
                 log_path = out / "logs" / f"job-{k}.log"
                 running[k] = procs.start(base + ["--safety", "on" if on else "off", "--controllers", name,
-                                                 "--doc", str(out / "logs" / f"job-{k}.md")],
+                                                 "--doc", str(out / "logs" / f"job-{k}.md"),
+                                                 "--store", str(_store_dir(args))],
                                          dict(os.environ), log_path)
                 print(f"racecav eval --table --jobs {jobs}: job {k}: {key}, {left} trials (log {log_path})",
                       flush=True)
@@ -255,7 +328,7 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
                     if c.returncode != 0:
                         failed.append((k, rows[k][3], c.returncode))
             if bar is not None:
-                bar.n = min(sum(_lines(p) for p in out.rglob("*.jsonl")), total)
+                bar.n = _done(every)
                 bar.refresh()
     except BaseException as e:  # interrupted: the children stop too (their cells stay resumable)
         for c in running.values():
@@ -272,7 +345,7 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
 
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
-                      error, sections=SECTIONS, suite: dict | None = None) -> Path:
+                      error, sections=SECTIONS, suite: dict | None = None, free: dict | None = None) -> Path:
     """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4."""
     from racecav.common.bench import machine
     from racecav.common.scenario import load_scenario
@@ -387,11 +460,16 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
                   f"![trajectories]({fig.relative_to(doc.parent)})", ""]
     lines += _conflict_sections(results, names, trials, seeds, {k: v for k, v in (suite or {}).items() if k in names},
                                 img, doc)
-    lines += _safety_section(results, names, trials, suite or {})
+    lines += _free_section({k: v for k, v in (free or {}).items() if k in names}, results, names)
+    lines += _safety_section(results, names, trials, suite or {}, free or {})
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # --jobs N: N processes; --resume: continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "
-              f"{args.out_dir / 'table'}/.", ""]
+              f"{args.out_dir / 'table'}/. Every complete cell is also kept, compactly (no trajectories but "
+              f"trial 0's, no per-step latencies; the summaries computed from the full data), in the committed "
+              f"store {_store_dir(args).name}/ beside this document (evaluation/store.py): with `--resume` a fresh "
+              "clone rewrites this document from it and runs only the cells it lacks (a new policy's weights, "
+              "an edited scenario file).", ""]
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))
     return doc
@@ -467,10 +545,37 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
     return lines
 
 
-def _safety_section(results: dict, names: list[str], trials: int, suite: dict) -> list[str]:
+def _free_section(free: dict, results: dict, names: list[str]) -> list[str]:
+    """docs/results.md: the open suite's test split, the intersection with no other car."""
+    if not free:
+        return []
+    first = next(iter(free.values()))
+
+    def txt(sm: dict) -> str:
+        if not sm["trials"]:
+            return "not run"
+        lo, hi = sm["ci95"]
+        return f"**{100 * sm['success_rate']:.0f}** [{100 * lo:.0f}, {100 * hi:.0f}]"
+    lines = ["## Free intersections: no other car", "",
+             f"The open suite's test split (`racecav suite generate --name {first['suite']}`, common/data/suites/"
+             f"{first['suite']}.toml, docs/world.md): the intersection with no other car, {len(first['scenarios'])} "
+             f"files, {first['trials_per_scenario']} trials each (trial i: seed {first['base_seed']} + i). Success: "
+             "through the crossing along the ego's own road within the file's 4-5 s, no contact. A car that "
+             "drives straight at full throttle passes it; what it measures is whether a controller keeps to its "
+             "road where nothing needs an evasion (an evasion learnt as a habit of the intersection shows here).",
+             "", "| controller | success | collisions | mean progress (m) |", "|---|---:|---:|---:|"]
+    for n, d in free.items():
+        sm = d["summary"]
+        prog = "n/a" if sm["mean_progress_m"] is None else f"{sm['mean_progress_m']:.2f}"
+        lines.append(f"| {_label(n)} | {txt(sm)} | {sm['collisions']} | {prog} |")
+    return lines + [""]
+
+
+def _safety_section(results: dict, names: list[str], trials: int, suite: dict, free: dict | None = None) -> list[str]:
     """docs/results.md: every cell run without and with the supervisor (``--safety both``)."""
+    free = free or {}
     pairs = [n for n in names if any((n + "+safety", sc) in results for sc in (*SCENARIOS, *CONFLICT))
-             or n + "+safety" in suite]
+             or n + "+safety" in suite or n + "+safety" in free]
     if not pairs:
         return []
     cols = [sc for sc in (*SCENARIOS, *CONFLICT) if any((n, sc) in results for n in pairs)]
@@ -481,8 +586,16 @@ def _safety_section(results: dict, names: list[str], trials: int, suite: dict) -
              "the controller, services/safety, docs/controllers.md), on the same seeds: success % off -> on "
              "(collisions off -> on). Its scan -> brake latency and its false brakes over 100 laps of the "
              "empty racetrack and figure eight are `racecav bench safety` (docs/benchmarks.md, section safety).",
-             "", "| controller | " + " | ".join(head) + (" | suite (test split) |" if suite else " |"),
-             "|---|" + "---:|" * (len(cols) + (1 if suite else 0))]
+             "", "| controller | " + " | ".join(head) + (" | suite (test split) |" if suite else " |")
+             + (" free (test split) |" if free else ""),
+             "|---|" + "---:|" * (len(cols) + (1 if suite else 0) + (1 if free else 0))]
+
+    def whole(off, on) -> str:
+        if not off or not on:
+            return "not run"
+        a, b = off["summary"], on["summary"]
+        return (f"{100 * a['success_rate']:.0f} -> **{100 * b['success_rate']:.0f}** "
+                f"({a['collisions']} -> {b['collisions']})")
 
     def cell(off, on) -> str:
         if off is None or on is None or not off.summary.trials or not on.summary.trials:
@@ -493,11 +606,8 @@ def _safety_section(results: dict, names: list[str], trials: int, suite: dict) -
 
     for n in pairs:
         row = [cell(results.get((n, sc)), results.get((n + "+safety", sc))) for sc in cols]
-        if suite:
-            off, on = suite.get(n), suite.get(n + "+safety")
-            row.append("not run" if not off or not on else
-                       f"{100 * off['summary']['success_rate']:.0f} -> **{100 * on['summary']['success_rate']:.0f}** "
-                       f"({off['summary']['collisions']} -> {on['summary']['collisions']})")
+        for d in (x for x in (suite, free) if x):
+            row.append(whole(d.get(n), d.get(n + "+safety")))
         lines.append(f"| {_label(n)} | " + " | ".join(row) + " |")
-    lines += ["", f"{trials} trials per scenario cell; the suite: its test split as in the section above.", ""]
+    lines += ["", f"{trials} trials per scenario cell; the suites: their test splits as in the sections above.", ""]
     return lines

@@ -37,11 +37,22 @@ def scenario_ref(name_or_path: str) -> tuple[str, Path]:
     return name_or_path, SCENARIOS_DIR / f"{name_or_path}.toml"
 
 
+def cell_key(ctrl, safety: bool, mode: str, path: Path, base_seed: int) -> str:
+    """The run key of a controller's trials on a scenario file (results.run_key): what makes two
+    runs' trials interchangeable. With the safety supervisor the controller is CONTROLLER+safety."""
+    from racecav.evaluation import results as R
+
+    weights = R.file_digest(ctrl.model) if ctrl.model is not None else None
+    return R.run_key(R.file_digest(path), ctrl.name + ("+safety" if safety else ""), mode, base_seed, weights)
+
+
 def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl: Path, resume: bool,
-               bar=None, keep_trajectory: bool = True):
+               bar=None, keep_trajectory: bool = True, store=None):
     """Run (or resume) ``trials`` trials of one scenario on an open harness.
 
     :param path: the scenario file (its digest keys the run). :param bar: a shared progress bar.
+    :param store: (CellStore, row, group, cell): with ``resume`` a complete stored cell of the same
+        run key is returned without running a trial; a cell that completes here is stored.
     :returns: (RunResult, the exception that stopped it or None). The result is partial
         (``complete: false``, ``stopped_reason``) when not every trial finished.
     """
@@ -52,9 +63,15 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
     sc = load_scenario(ref)
     digest = R.file_digest(path)
     weights = R.file_digest(harness.ctrl.model) if harness.ctrl.model is not None else None
-    # with the safety supervisor the controller under test is CONTROLLER+safety
-    name = harness.ctrl.name + ("+safety" if getattr(harness, "safety", False) else "")
-    key = R.run_key(digest, name, harness.mode, base_seed, weights)
+    safety = getattr(harness, "safety", False)
+    name = harness.ctrl.name + ("+safety" if safety else "")
+    key = cell_key(harness.ctrl, safety, harness.mode, path, base_seed)
+    if store is not None and resume:
+        hit = store[0].get(*store[1:], key, trials)
+        if hit is not None:
+            if bar is not None:
+                bar.update(trials)
+            return hit, None
     jsonl.parent.mkdir(parents=True, exist_ok=True)
     done = R.read_jsonl(jsonl, key) if resume else {}
     if not resume and jsonl.exists():
@@ -109,6 +126,8 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
         mode=harness.mode, base_seed=base_seed, trials_requested=trials, complete=len(finished) == trials,
         stopped_reason=stopped, wall_s=time.monotonic() - wall0, summary=R.summarize(finished),
         sim_counters=sim_counters, controller_counters=ctrl_counters, trials=finished)
+    if store is not None:
+        store[0].put(*store[1:], res)
     return res, error
 
 

@@ -205,9 +205,60 @@ def test_table_writes_the_document(tmp_path):
     assert "| no evasion (straight 1 m/s, scripted) | **0** [0, 79] | **0** [0, 79] | **0** [0, 79] |" in text
     for png in ("results-table1.png", "results-fig4.png", "results-conflict.png", "results-suite.png"):
         assert (tmp_path / "img" / png).stat().st_size > 10_000
+    # the free intersections: the open suite's test split (20 files), which a car at 1 m/s fails (too slow)
+    assert "## Free intersections" in text
+    assert "| no evasion (straight 1 m/s, scripted) | **0** [0, 16] | 0 |" in text, text
     # a controller that cannot run is named, nothing is started
     r = _eval(tmp_path, "--table", "--controllers", "scripted,nonsense", "--trials", "1", "--doc", str(doc))
     assert r.returncode == 2 and "nonsense" in r.stderr
+
+
+def _tables(text: str) -> list[str]:
+    """The document's table rows and section heads: what a store must reproduce (the header line
+    holds the date and the wall time, the last section the out-dir)."""
+    return [x for x in text.splitlines() if x.startswith(("|", "#"))]
+
+
+def test_table_store_rewrites_the_document_without_running_a_trial(tmp_path):
+    """Every complete cell goes to the committed store beside the document; with --resume a fresh
+    out-dir (a fresh clone: no JSONL) gets the same document from it without starting a service,
+    and a cell asked with another trial count is run again, not taken from the store."""
+    import gzip
+
+    doc = tmp_path / "docs" / "results.md"
+    args = ("--table", "--controllers", "full-throttle", "--sections", "table1,free", "--trials-per-scenario", "1",
+            "--doc", str(doc))
+    r = _eval(tmp_path / "one", *args, "--trials", "2", timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    first = doc.read_text()
+    store = tmp_path / "docs" / "results-data"
+    assert sorted(p.name for p in store.iterdir()) == ["full-throttle.scenarios.json.gz",
+                                                        "full-throttle.suite-open.json.gz"]
+    cells = json.loads(gzip.open(store / "full-throttle.scenarios.json.gz").read())
+    assert sorted(cells) == ["head-to-head", "left-to-right", "right-to-left"]
+    for cell in cells.values():  # compact: outcomes kept, per-step latencies and later trajectories dropped
+        run = validate_run(cell)
+        assert run.complete and [t.index for t in run.trials] == [0, 1]
+        assert run.summary.latency_ms.n > 0 and all(not t.latency_steps_ms for t in run.trials)
+        assert run.trials[0].trajectory is not None and run.trials[1].trajectory is None
+    assert len(json.loads(gzip.open(store / "full-throttle.suite-open.json.gz").read())) == 20
+    doc.unlink()
+    r = _eval(tmp_path / "fresh", *args, "--trials", "2", "--resume", timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert _tables(doc.read_text()) == _tables(first)
+    assert not list((tmp_path / "fresh").rglob("*.jsonl")) and not (tmp_path / "fresh" / "table" / "logs").exists()
+    assert "## Free intersections" in first and "| no evasion (straight, full throttle, scripted) | **100**" in first
+    # another trial count is another cell: run, and stored in place of the old one
+    r = _eval(tmp_path / "fresh", "--table", "--controllers", "full-throttle", "--sections", "table1",
+              "--doc", str(doc), "--trials", "3", "--resume", timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert len(list((tmp_path / "fresh" / "table").glob("*.jsonl"))) == 3
+    assert [len(c["trials"]) for c in json.loads(gzip.open(store / "full-throttle.scenarios.json.gz").read()).values()] \
+        == [3, 3, 3]
+    # a broken store file is named, nothing is started
+    (store / "full-throttle.scenarios.json.gz").write_bytes(b"not gzip")
+    r = _eval(tmp_path / "fresh", *args, "--trials", "3", "--resume", timeout=60)
+    assert r.returncode == 2 and "full-throttle.scenarios.json.gz" in r.stderr, r.stdout + r.stderr
 
 
 def test_safety_both_needs_the_table(tmp_path):

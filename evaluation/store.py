@@ -1,0 +1,88 @@
+"""The committed store of ``racecav eval --table``'s finished cells: docs/results-data/.
+
+A full table is about 440 CPU-minutes, more than one working session, and its per-trial JSONL
+(trajectories, per-step latencies: several kB a trial) is too big to commit. The store keeps
+what the document needs of every complete cell, compactly, so that a fresh clone regenerates
+docs/results.md from it (``racecav eval --table ... --resume`` runs only the cells it lacks) and
+a table can be computed over several sessions, one committed batch of rows at a time.
+
+A cell is stored as its RunResult with the summary computed from the full data (latency
+percentiles pooled over every step) and the per-trial outcomes (seed, success, contact, gap,
+progress, wall time, per-trial latency stats), without the per-step latency arrays and without
+trajectories except trial 0's (the document's Figure 4). Cells are reused only when complete
+and under the same run key (scenario file digest, controller, policy weights digest, mode, seed)
+and trial count as asked. One gzip file per (table row, group): ROW.scenarios.json.gz (the
+paper's and the conflict-timed scenarios) and ROW.suite-NAME.json.gz (one cell per suite file).
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+from pathlib import Path
+
+
+def compact(res):
+    """The RunResult as stored: no per-step arrays, trial 0's trajectory only."""
+    trials = [t.model_copy(update={"latency_steps_ms": [], "compute_steps_ms": [],
+                                   "trajectory": t.trajectory if t.index == 0 else None})
+              for t in res.trials]
+    return res.model_copy(update={"trials": trials})
+
+
+class CellStore:
+    """Complete cells by (row, group, cell name); see the module docstring."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self._files: dict[Path, dict] = {}
+
+    def _path(self, row: str, group: str) -> Path:
+        return self.root / f"{row}.{group}.json.gz"
+
+    def _load(self, path: Path) -> dict:
+        if path not in self._files:
+            if path.is_file():
+                try:
+                    with gzip.open(path, "rt") as f:
+                        self._files[path] = json.load(f)
+                except (OSError, ValueError) as e:
+                    raise ValueError(f"{path}: not a results store file ({e}); delete it to recompute its cells") \
+                        from None
+            else:
+                self._files[path] = {}
+        return self._files[path]
+
+    def get(self, row: str, group: str, cell: str, key: str, trials: int):
+        """The stored RunResult of a cell, or None if absent, partial or of another run key."""
+        from racecav.evaluation import results as R
+
+        data = self._load(self._path(row, group)).get(cell)
+        if data is None:
+            return None
+        res = R.validate_run(data)
+        if not res.complete or res.trials_requested != trials or stored_key(res) != key:
+            return None
+        return res
+
+    def put(self, row: str, group: str, cell: str, res) -> None:
+        """Store a complete cell (a partial one is left to the JSONL under --out-dir)."""
+        if not res.complete:
+            return
+        path = self._path(row, group)
+        cells = self._load(path)
+        cells[cell] = compact(res).model_dump(mode="json")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        text = json.dumps({k: cells[k] for k in sorted(cells)}, separators=(",", ":"))
+        with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as f:  # same bytes for same cells
+            f.write(text.encode())
+        os.replace(tmp, path)
+
+
+def stored_key(res) -> str:
+    """The run key (results.run_key) a stored cell was computed under."""
+    from racecav.evaluation import results as R
+
+    return R.run_key(res.scenario.digest, res.controller.name, res.mode, res.base_seed, res.controller.weights_sha256)
