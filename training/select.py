@@ -859,7 +859,8 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-gsde-holdtrack-priv", "avoid-gsde-holdtrack"), ("avoid-gsde-holdbc", "avoid-gsde-flow120"),
             ("avoid-holddagger", "avoid-gsde-flow120"), ("avoid-holddagger-ppo", "avoid-gsde-holdtrack"),
             ("avoid-gsde-open", "avoid-gsde-flow120"), ("avoid-gsde-open-hold", "avoid-gsde-open"),
-            ("avoid-gsde-open-hold-brake", "avoid-gsde-open-hold"), ("avoid-gsde-brake", "avoid-gsde-flow120"))
+            ("avoid-gsde-open-hold-brake", "avoid-gsde-open-hold"), ("avoid-gsde-brake", "avoid-gsde-flow120"),
+            ("avoid-gsde-from-dagger", "avoid-gsde-flow120"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -917,7 +918,8 @@ def _ablation_markdown() -> str:
          "- longer training, lower learning rates, a third scan or a longer scan baseline (rows 8-9, 11-12, 16-17, 32);",
          "- the paper-timed cars in the mix with curriculum boosts, a brake, lane keeping (rows 10, 18-19, 21); "
          "a brake as the later answer on a straight approach (rows 57-58);",
-         "- a privileged planner, by DAgger or as an auxiliary loss (rows 13-15, 20, 49);",
+         "- a privileged planner, by DAgger or as an auxiliary loss (rows 13-15, 20, 49); row 31's recipe "
+         "started from row 14's policy, which drives straight through the paper-timed crossings (row 59);",
          "- mirror symmetry: the mirror image as teacher, a symmetric actor, mirrored rollouts (rows 22-24, 34-41);",
          "- reward terms: a heading hold, a ghost's straight pass, a margin to the other car (rows 43, 45-46, 50-51); "
          "the crossing car's flow and gSDE exploration were kept (rows 25-26, 29-31);",
@@ -1591,7 +1593,23 @@ def _ablation_markdown() -> str:
           "the highest of any row), free column 1-7 %, scores 0.83-0.92 (0.922 at 8 M: 98 / 94 / 94 | 97 / 95 / "
           "81 %; the table shows 16 M, in the same 0.05 step of the score with a higher suite); 7 of the 8 targets at 5 M (paper-timed left-to-right 71 %), at most 6 elsewhere. Stopped, "
           "rejected: the paper-timed left-to-right stays below row 31's 83 %. Started from a policy that "
-          "hedges with a turn, neither row learns the straight approach with a late stop. ", ""]
+          "hedges with a turn, neither row learns the straight approach with a late stop. "
+          "Row 59 (avoid-gsde-from-dagger) starts row 31's recipe (its flags and mix, `--init-std 0.3` for "
+          "gSDE) from the other end of the trade: row 14's last checkpoint (30.8 M), a policy that drives "
+          "straight through the paper-timed crossings from the left and passes the conflict-timed ones but "
+          "not the suite (its eval.csv at 30.8 M: paper-timed 100 / 65 / 99 %, conflict-timed 96 / 85 / 99 %, "
+          "suite 74 %), instead of row 16's 4 M. Why: rows 57-58 started from a policy that already hedges "
+          "with a turn; this one does not, and row 31's exploration, flow term and paper-timed cars are what "
+          "gave row 31 the suite and the head-on. 19.5 M samples in 47 min (a median 7.4 k samples/s); its 16 "
+          "evaluated checkpoints (1-17 M): paper-timed 89-100 / 62-92 / 73-100 % (the left-to-right at 85-100 % "
+          "up to 15 M), free column 61-77 % (row 31: 1 %), but conflict-timed 51-83 / 66-89 / 67-88 %, suite "
+          "57-77 %, lowest family 21-44 % (staggered: a car from the right, then one from the left), scores "
+          "0.70-0.84 (best 0.843 at 7 M; the table shows 15 M, in the same 0.05 step of the score with a "
+          "higher suite), at most 2 of the 8 targets. The recipe's new exploration first "
+          "costs it the conflicts it had (1 M: 51 / 77 / 67 %), and over 17 M samples it wins back part of "
+          "them while the suite stays below row 14's own. Stopped, rejected. From either end the trade holds: "
+          "a policy that goes straight at the intersection does not get row 31's conflicts from row 31's "
+          "recipe within 20 M samples, as row 31's does not get the straight pass. ", ""]
     L += ["![the paths of row 38](img/training_paths_mirrorbc_wide.png)", "",
           "Row 38's last checkpoint: `racecav train paths --policy training/checkpoints/avoid-gsde-mirrorbc-wide/latest.zip "
           "--trials 10 --out docs/img/training_paths_mirrorbc_wide.png`.", "",
