@@ -460,7 +460,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
                   f"![trajectories]({fig.relative_to(doc.parent)})", ""]
     lines += _conflict_sections(results, names, trials, seeds, {k: v for k, v in (suite or {}).items() if k in names},
                                 img, doc)
-    lines += _free_section({k: v for k, v in (free or {}).items() if k in names}, results, names)
+    lines += _free_section({k: v for k, v in (free or {}).items() if k in names})
     lines += _safety_section(results, names, trials, suite or {}, free or {})
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # --jobs N: N processes; --resume: continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
@@ -473,6 +473,14 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))
     return doc
+
+
+def _rate_text(sm: dict) -> str:
+    """A suite summary's success rate with its 95 % interval, as in cell_text."""
+    if not sm["trials"]:
+        return "not run"
+    lo, hi = sm["ci95"]
+    return f"**{100 * sm['success_rate']:.0f}** [{100 * lo:.0f}, {100 * hi:.0f}]"
 
 
 def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict, suite: dict | None,
@@ -517,16 +525,10 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
                   "split; selection: the train split with selection seeds). Success per family and overall, 95 % "
                   "Wilson intervals.", "",
                   "| controller | " + " | ".join(fams) + " | overall |", "|---|" + "---:|" * (len(fams) + 1)]
-
-        def txt(sm: dict) -> str:
-            if not sm["trials"]:
-                return "not run"
-            lo, hi = sm["ci95"]
-            return f"**{100 * sm['success_rate']:.0f}** [{100 * lo:.0f}, {100 * hi:.0f}]"
         rows = []
         for n, d in suite.items():
-            lines.append(f"| {_label(n)} | " + " | ".join(txt(d["families"][f]) for f in fams)
-                         + f" | {txt(d['summary'])} |")
+            lines.append(f"| {_label(n)} | " + " | ".join(_rate_text(d["families"][f]) for f in fams)
+                         + f" | {_rate_text(d['summary'])} |")
             rows.append((_label(n), [(d["families"][f]["success_rate"],
                                                  tuple(d["families"][f]["ci95"]) if d["families"][f]["ci95"] else None,
                                                  None) for f in fams]))
@@ -545,17 +547,12 @@ def _conflict_sections(results: dict, names: list[str], trials: int, seeds: dict
     return lines
 
 
-def _free_section(free: dict, results: dict, names: list[str]) -> list[str]:
+def _free_section(free: dict) -> list[str]:
     """docs/results.md: the open suite's test split, the intersection with no other car."""
     if not free:
         return []
     first = next(iter(free.values()))
 
-    def txt(sm: dict) -> str:
-        if not sm["trials"]:
-            return "not run"
-        lo, hi = sm["ci95"]
-        return f"**{100 * sm['success_rate']:.0f}** [{100 * lo:.0f}, {100 * hi:.0f}]"
     lines = ["## Free intersections: no other car", "",
              f"The open suite's test split (`racecav suite generate --name {first['suite']}`, common/data/suites/"
              f"{first['suite']}.toml, docs/world.md): the intersection with no other car, {len(first['scenarios'])} "
@@ -567,7 +564,7 @@ def _free_section(free: dict, results: dict, names: list[str]) -> list[str]:
     for n, d in free.items():
         sm = d["summary"]
         prog = "n/a" if sm["mean_progress_m"] is None else f"{sm['mean_progress_m']:.2f}"
-        lines.append(f"| {_label(n)} | {txt(sm)} | {sm['collisions']} | {prog} |")
+        lines.append(f"| {_label(n)} | {_rate_text(sm)} | {sm['collisions']} | {prog} |")
     return lines + [""]
 
 
