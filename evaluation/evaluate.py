@@ -68,6 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", type=Path, help="--table: the committed store of complete cells that --resume "
                    "reuses and every complete cell is written to (default: results-data/ beside --doc; "
                    "evaluation/store.py)")
+    p.add_argument("--from-store", action="store_true",
+                   help="--table: write the document from the --store cells alone (implies --resume): no "
+                        "service starts, and a cell the store lacks is an error (exit 2) naming its row")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--jobs", type=int, default=1,
                    help="--table: run the (controller, safety) rows in a pool of N processes (each about "

@@ -127,11 +127,21 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     scen = (list(SCENARIOS) if "table1" in sections else []) + (list(CONFLICT) if "conflict" in sections else [])
     seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in scen}
     k_suite = args.trials_per_scenario
+    if getattr(args, "from_store", False):
+        args.resume = True
     try:
         store = CellStore(_store_dir(args))
         cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store) for n, on in runs}
     except ValueError as e:  # a broken store file
         print(f"racecav eval --table: {e}", file=sys.stderr)
+        return 2
+    lacking = {n + ("+safety" if on else ""): [c.cell for c in cs if c.stored is None] for (n, on), cs in cells.items()}
+    lacking = {row: cs for row, cs in lacking.items() if cs}
+    if getattr(args, "from_store", False) and lacking:  # nothing is run: say what a run would have to add
+        for row, cs in lacking.items():
+            print(f"racecav eval --table --from-store: {_store_dir(args)} holds no current cell for {len(cs)} "
+                  f"of {row}'s cells (e.g. {', '.join(cs[:3])}; absent, or stored with another trial count, "
+                  "scenario file or weights): measure them with --resume instead of --from-store", file=sys.stderr)
         return 2
     results: dict[tuple[str, str], object] = {}
     suite_results: dict[str, dict[str, dict]] = {sec: {} for sec in suites}
@@ -469,7 +479,8 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
               f"trial 0's, no per-step latencies; the summaries computed from the full data), in the committed "
               f"store {_store_dir(args).name}/ beside this document (evaluation/store.py): with `--resume` a fresh "
               "clone rewrites this document from it and runs only the cells it lacks (a new policy's weights, "
-              "an edited scenario file).", ""]
+              "an edited scenario file); with `--from-store` it runs nothing and names the cells the store lacks "
+              "(tests/test_eval_harness.py checks that this document is what the store writes).", ""]
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))
     return doc
