@@ -36,23 +36,33 @@ class CellStore:
 
     def __init__(self, root: Path):
         self.root = Path(root)
-        self._files: dict[Path, dict] = {}
+        self._files: dict[Path, tuple[tuple | None, dict]] = {}  # path -> (its stamp when read, its cells)
 
     def _path(self, row: str, group: str) -> Path:
         return self.root / f"{row}.{group}.json.gz"
 
+    @staticmethod
+    def _stamp(path: Path) -> tuple | None:
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            return None
+        return st.st_mtime_ns, st.st_size
+
     def _load(self, path: Path) -> dict:
-        if path not in self._files:
-            if path.is_file():
+        # read again when the file changed: --jobs children write the rows their parent then reads
+        stamp = self._stamp(path)
+        if path not in self._files or self._files[path][0] != stamp:
+            cells = {}
+            if stamp is not None:
                 try:
                     with gzip.open(path, "rt") as f:
-                        self._files[path] = json.load(f)
+                        cells = json.load(f)
                 except (OSError, ValueError) as e:
                     raise ValueError(f"{path}: not a results store file ({e}); delete it to recompute its cells") \
                         from None
-            else:
-                self._files[path] = {}
-        return self._files[path]
+            self._files[path] = (stamp, cells)
+        return self._files[path][1]
 
     def get(self, row: str, group: str, cell: str, key: str, trials: int):
         """The stored RunResult of a cell, or None if absent, partial or of another run key."""
@@ -79,6 +89,7 @@ class CellStore:
         with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as f:  # same bytes for same cells
             f.write(text.encode())
         os.replace(tmp, path)
+        self._files[path] = (self._stamp(path), cells)
 
 
 def stored_key(res) -> str:

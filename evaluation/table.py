@@ -380,13 +380,16 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     if getattr(args, "safety", "off") != "off":
         cmd += f" --safety {args.safety}"
     stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    trial_wall = sum(t.wall_s for r in results.values() for t in r.trials)
+    trial_wall = sum(t.wall_s for r in results.values() for t in r.trials) \
+        + sum(d["wall_s"] for sec in (suite, free) if sec for d in sec.values())  # the suite sections' too
     lines = [
         "# Results: collision-avoidance success (the paper's Table 1), latency, trajectories",
         "",
-        f"Written by `{cmd}` on {stamp}, {machine()}, commit {git_commit()}, "
-        f"wall time {wall_s / 60:.1f} min (trials alone: {trial_wall / 60:.1f} min, whichever invocation ran "
-        "them). Nothing here is typed by hand.",
+        (f"Written by `{cmd}` on {stamp}, {machine()}, commit {git_commit()}, "
+         + (f"from the committed cells alone (`--from-store`; their trials took {trial_wall / 60:.1f} min in the "
+            "invocations that ran them)" if getattr(args, "from_store", False) else
+            f"wall time {wall_s / 60:.1f} min (trials alone: {trial_wall / 60:.1f} min, whichever invocation ran "
+            "them)") + ". Nothing here is typed by hand."),
         "",
     ]
     if error is not None:

@@ -265,6 +265,41 @@ def test_table_store_rewrites_the_document_without_running_a_trial(tmp_path):
     assert r.returncode == 2 and "full-throttle.scenarios.json.gz" in r.stderr, r.stdout + r.stderr
 
 
+def test_a_store_sees_the_cells_another_process_wrote(tmp_path):
+    """--jobs: the parent read the store before its children wrote their rows; it must see them
+    afterwards (else it starts every row's services again to replay the JSONL)."""
+    import gzip
+
+    from racecav.evaluation.store import CellStore, stored_key
+
+    repo = Path(__file__).resolve().parents[1]
+    cells = json.loads(gzip.open(repo / "docs" / "results-data" / "full-throttle.scenarios.json.gz").read())
+    res = validate_run(cells["head-to-head"])
+    parent, child = CellStore(tmp_path), CellStore(tmp_path)
+    cell = ("full-throttle", "scenarios", "head-to-head")
+    assert parent.get(*cell, stored_key(res), res.trials_requested) is None
+    child.put(*cell, res)
+    got = parent.get(*cell, stored_key(res), res.trials_requested)
+    assert got is not None and [(t.seed, t.success) for t in got.trials] == [(t.seed, t.success) for t in res.trials]
+
+
+def test_committed_results_are_what_the_committed_store_writes(tmp_path):
+    """docs/results.md is what its own command (from its header) writes from the committed cells
+    (docs/results-data) alone: every number of its tables comes from a stored cell measured with the
+    shipped weights and scenario files, none is typed by hand or left over from an older run."""
+    import re
+
+    repo = Path(__file__).resolve().parents[1]
+    committed = (repo / "docs" / "results.md").read_text()
+    cmd = re.search(r"Written by `racecav eval (--table[^`]*)`", committed).group(1).split()
+    doc = tmp_path / "results.md"
+    r = _eval(tmp_path / "out", *cmd, "--from-store", "--store", str(repo / "docs" / "results-data"),
+              "--doc", str(doc), timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert _tables(doc.read_text()) == _tables(committed)
+    assert not list((tmp_path / "out").rglob("*.jsonl"))
+
+
 def test_safety_both_needs_the_table(tmp_path):
     """--safety both is a table option (its cells run in test_table_jobs_split_...)."""
     r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "scripted", "--safety", "both")
