@@ -3,8 +3,9 @@
 A full table is about 360 CPU-minutes of trials (docs/results.md's header), more than one working
 session, and its per-trial JSONL (trajectories, per-step latencies: several kB a trial) is too big
 to commit. The store keeps what the document needs of every complete cell, compactly, so that a
-fresh clone regenerates docs/results.md from it (``racecav eval --table ... --resume`` runs only the cells it lacks) and
-a table can be computed over several sessions, one committed batch of rows at a time.
+fresh clone regenerates docs/results.md from it (``racecav eval --table ... --resume`` runs only
+the cells it lacks; ``--from-store`` runs none) and a table can be computed over several sessions,
+one committed batch of rows at a time.
 
 A cell is stored as its RunResult with the summary computed from the full data (latency
 percentiles pooled over every step) and the per-trial outcomes (seed, success, contact, gap,
