@@ -127,7 +127,8 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     scen = (list(SCENARIOS) if "table1" in sections else []) + (list(CONFLICT) if "conflict" in sections else [])
     seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in scen}
     k_suite = args.trials_per_scenario
-    if getattr(args, "from_store", False):
+    from_store = getattr(args, "from_store", False)
+    if from_store:
         args.resume = True
     try:
         store = CellStore(_store_dir(args))
@@ -135,14 +136,15 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     except ValueError as e:  # a broken store file
         print(f"racecav eval --table: {e}", file=sys.stderr)
         return 2
-    lacking = {n + ("+safety" if on else ""): [c.cell for c in cs if c.stored is None] for (n, on), cs in cells.items()}
-    lacking = {row: cs for row, cs in lacking.items() if cs}
-    if getattr(args, "from_store", False) and lacking:  # nothing is run: say what a run would have to add
-        for row, cs in lacking.items():
+    if from_store:  # nothing is run: name what a run would have to add
+        lacking = {n + ("+safety" if on else ""): [c.cell for c in cs if c.stored is None]
+                   for (n, on), cs in cells.items()}
+        for row, cs in ((r, cs) for r, cs in lacking.items() if cs):
             print(f"racecav eval --table --from-store: {_store_dir(args)} holds no current cell for {len(cs)} "
                   f"of {row}'s cells (e.g. {', '.join(cs[:3])}; absent, or stored with another trial count, "
                   "scenario file or weights): measure them with --resume instead of --from-store", file=sys.stderr)
-        return 2
+        if any(lacking.values()):
+            return 2
     results: dict[tuple[str, str], object] = {}
     suite_results: dict[str, dict[str, dict]] = {sec: {} for sec in suites}
     wall0 = time.monotonic()
