@@ -63,3 +63,39 @@ def test_seen_decision_frees_the_planner_where_its_straight_ego_first_sees_the_c
     paper = seen_decision(str(SCENARIOS_DIR / "left-to-right.toml"), "", 8, [0], 1)
     ok, d = paper[0]
     assert ok == 1.0 and abs(d) < 0.2
+
+
+def test_seen_filter_keeps_the_files_a_seeing_planner_passes(tmp_path):
+    """`racecav train seen-filter`: held straight until 10 periods after the car is in view, the
+    planner loses the conflict-timed crossing from the left and passes the paper-timed one; the
+    new suite keeps only the latter (copied, with its pass rate and the filter recorded), the
+    source is untouched, and scenario_sources reads the new suite."""
+    import json
+    import shutil
+
+    from racecav.cli import main
+    from racecav.common.scenario import SCENARIOS_DIR, scenario_sources
+    from racecav.training.seen_filter import unfiltered
+
+    src = tmp_path / "src"
+    (src / "train").mkdir(parents=True)
+    for name in ("conflict-left-to-right", "left-to-right"):
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", src / "train" / f"{name}.toml")
+    entries = [{"file": f"train/{n}.toml", "family": "cross-left"} for n in ("conflict-left-to-right", "left-to-right")]
+    (src / "suite.json").write_text(json.dumps({"name": "src", "families": ["cross-left"],
+                                                "splits": {"train": entries, "test": []}}))
+    out = tmp_path / "src-seen"
+    assert main(["train", "seen-filter", "--source", str(src), "--out", str(out), "--draws", "4",
+                 "--delay", "10", "--keep", "0.75", "--no-progress"]) == 0
+    man = json.loads((out / "suite.json").read_text())
+    assert [e["file"] for e in man["splits"]["train"]] == ["train/left-to-right.toml"]
+    assert man["splits"]["train"][0]["seen_pass_rate"] == 1.0 and man["seen_filter"]["delay"] == 10
+    assert (out / "train" / "left-to-right.toml").read_bytes() == (src / "train" / "left-to-right.toml").read_bytes()
+    assert not (out / "train" / "conflict-left-to-right.toml").exists()
+    assert scenario_sources(out, "train") == [(out / "train" / "left-to-right.toml", "src-seen/cross-left")]
+    assert len(json.loads((src / "suite.json").read_text())["splits"]["train"]) == 2
+    assert unfiltered(str(out)) == str(src) and unfiltered(str(src)) == str(src)  # selection: the whole source
+    with pytest.raises(SystemExit, match="own folder"):
+        main(["train", "seen-filter", "--source", str(src), "--out", str(src)])
+    with pytest.raises(SystemExit, match="no suite.json"):
+        main(["train", "seen-filter", "--source", str(tmp_path / "nothing"), "--out", str(out)])

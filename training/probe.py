@@ -111,7 +111,6 @@ def _held_planner(source: str, family: str, n: int, seed: int, make_release) -> 
 
     from racecav.common.scenario import load_scenario, scenario_sources
     from racecav.sim.fast_world import FastWorld
-    from racecav.training.expert import Expert, tracking_steer
 
     scs = [sc for sc in (load_scenario(f) for f, _fam in scenario_sources(source, "train")) if sc.name.startswith(family)]
     if not scs:
@@ -119,25 +118,40 @@ def _held_planner(source: str, family: str, n: int, seed: int, make_release) -> 
     success, freed_at = [], []
     for k, world in enumerate(sorted({sc.world for sc in scs})):  # one FastWorld per world geometry
         fw = FastWorld(n_envs=n, scenarios=[sc for sc in scs if sc.world == world], seed=seed + k)
-        fw.reset()
-        planner, release = Expert(fw), make_release(fw)
-        late, ended, ok = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
-        where = np.full(n, np.nan)
-        while not ended.all():
-            now = ~late & ~ended & release(~late)
-            where[now] = -fw.agent_state()[now, 0]
-            late |= now
-            a = np.stack([np.ones(n), tracking_steer(fw)], axis=1)
-            if late.any():
-                a[late] = planner.act()[late]
-            fw.step(a)
-            over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
-            ok[over] = fw.success()[over]
-            ended |= over
+        ok, where = held_outcomes(fw, make_release)
         success.append(ok)
         freed_at.append(where)
     freed = np.concatenate(freed_at)
     return float(np.concatenate(success).mean()), float(np.nanmedian(freed)) if np.isfinite(freed).any() else float("nan")
+
+
+def held_outcomes(fw, make_release, on_ended=None):
+    """Reset the scenario FastWorld ``fw`` and drive every world once with the held planner (see
+    _held_planner): (success per world, the ego's distance to the conflict point when it was
+    freed; NaN: never freed). ``on_ended(k)`` hears of the k worlds whose episode ended at a step."""
+    import numpy as np
+
+    from racecav.training.expert import Expert, tracking_steer
+
+    n = fw.n_envs
+    fw.reset()
+    planner, release = Expert(fw), make_release(fw)
+    late, ended, ok = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+    where = np.full(n, np.nan)
+    while not ended.all():
+        now = ~late & ~ended & release(~late)
+        where[now] = -fw.agent_state()[now, 0]
+        late |= now
+        a = np.stack([np.ones(n), tracking_steer(fw)], axis=1)
+        if late.any():
+            a[late] = planner.act()[late]
+        fw.step(a)
+        over = ~ended & (fw.contact() | (fw.time >= fw.time_limit - 1e-9))
+        ok[over] = fw.success()[over]
+        ended |= over
+        if on_ended is not None and over.any():
+            on_ended(int(over.sum()))
+    return ok, where
 
 
 def late_decision(source: str, family: str, n: int, distances, seed: int) -> dict[float, float]:
@@ -156,23 +170,26 @@ def seen_decision(source: str, family: str, n: int, delays, seed: int) -> dict[i
     the conflict point at the latest): what a policy that must see a car, and then needs some
     scans to judge its motion, could still pass if it then drove as the planner does.
     Returns {delay: (success, median distance to the conflict point when freed)}."""
+    return {k: _held_planner(source, family, n, seed, released_after_seen(k)) for k in delays}
+
+
+def released_after_seen(delay: int):
+    """The release of seen_decision (for _held_planner / held_outcomes): a world is freed ``delay``
+    control periods after a car first returned a ray of its ego's scan, or at the conflict point."""
     import numpy as np
 
-    def after_seen(delay):
-        def make(fw):
-            periods = np.full(fw.n_envs, -1)  # since a car was first in view; -1: not yet
+    def make(fw):
+        periods = np.full(fw.n_envs, -1)  # since a car was first in view; -1: not yet
 
-            def release(held):
-                envs = np.flatnonzero(held & (periods < 0))
-                if envs.size:
-                    periods[envs[fw.seen_by_agent(envs).any(axis=1)]] = 0
-                out = (periods >= delay) | (fw.agent_state()[:, 0] >= 0.0)
-                periods[periods >= 0] += 1
-                return out
-            return release
-        return make
-
-    return {k: _held_planner(source, family, n, seed, after_seen(k)) for k in delays}
+        def release(held):
+            envs = np.flatnonzero(held & (periods < 0))
+            if envs.size:
+                periods[envs[fw.seen_by_agent(envs).any(axis=1)]] = 0
+            out = (periods >= delay) | (fw.agent_state()[:, 0] >= 0.0)
+            periods[periods >= 0] += 1
+            return out
+        return release
+    return make
 
 
 def fit_probe(x0, x1, v0, v1, seed: int = 0) -> dict:

@@ -275,9 +275,12 @@ def selection_cells(policy, env_cfg, trials: int, suite_episodes: int, conflict:
         crates = [eval_scenario(policy, sc, trials, SELECT_SEED)["success"] for sc in CONFLICT_SCENARIOS]
         row.update({f"{sc}_success": r for sc, r in zip(CONFLICT_SCENARIOS, crates)})
         row["conflict_success"] = sum(crates) / len(crates)
-        # the first scenario source is the conflict suite; any others (e.g. clock-timed traffic,
-        # which a non-evading car may pass) are only training mix
-        sel_env = env_cfg.model_copy(update={"scenarios": env_cfg.scenarios.split(",")[0].strip()})
+        # the first scenario source is the conflict suite (the whole of it, if training used a
+        # seen-filtered cut); any others (e.g. clock-timed traffic, which a non-evading car may
+        # pass) are only training mix
+        from racecav.training.seen_filter import unfiltered
+
+        sel_env = env_cfg.model_copy(update={"scenarios": unfiltered(env_cfg.scenarios.split(",")[0].strip())})
         row.update(eval_suite_fast(policy, sel_env, suite_episodes))
         row["score"] = (row["suite_success"] + row["conflict_success"] + row["intersection_success"]) / 3
         if free_suite:
