@@ -12,7 +12,10 @@ percentiles pooled over every step) and the per-trial outcomes (seed, success, c
 progress, wall time, per-trial latency stats), without the per-step latency arrays and without
 trajectories except trial 0's (the document's Figure 4). Cells are reused only when complete
 and under the same run key (scenario file digest, controller, policy weights digest, mode, seed)
-and trial count as asked. One gzip file per (table row, group): ROW.scenarios.json.gz (the
+and trial count as asked. The key holds no digest of the code: a cell keeps the commit it was
+measured at, and code_drift names the files of the trial code (MEASURED_CODE) changed since, which
+the table prints and writes in the document's header (rerun those cells without --resume if the
+change matters: a changed docstring does not, a changed contact test does). One gzip file per (table row, group): ROW.scenarios.json.gz (the
 paper's and the conflict-timed scenarios) and ROW.suite-NAME.json.gz (one cell per suite file).
 """
 
@@ -21,7 +24,13 @@ from __future__ import annotations
 import gzip
 import json
 import os
+import subprocess
 from pathlib import Path
+
+MEASURED_CODE = ("sim", "services", "common", "evaluation/harness.py", "evaluation/trials.py",
+                 "evaluation/suite_eval.py", "evaluation/metrics.py", "evaluation/results.py")
+"""What decides a cell's outcome (simulator, services, cars and worlds, the trial runner and its
+summary), as paths of the checkout; the table's writing (table.py, plots.py, this module) is not."""
 
 
 def compact(res):
@@ -98,3 +107,38 @@ def stored_key(res) -> str:
     from racecav.evaluation import results as R
 
     return R.run_key(res.scenario.digest, res.controller.name, res.mode, res.base_seed, res.controller.weights_sha256)
+
+
+def code_drift(commits, root: Path | None = None) -> dict[str, list[str] | None]:
+    """Per commit as cells record it (``git describe --always --dirty``), the MEASURED_CODE files
+    that differ between it and this checkout's working tree; None when git cannot tell (no git, a
+    commit this clone lacks, "unknown"). A "-dirty" commit had uncommitted changes of its own."""
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
+    out: dict[str, list[str] | None] = {}
+    for c in commits:
+        try:
+            r = subprocess.run(["git", "diff", "--name-only", c.removesuffix("-dirty"), "--", *MEASURED_CODE],
+                               cwd=root, capture_output=True, text=True, timeout=30)
+            out[c] = r.stdout.split() if r.returncode == 0 else None
+        except (OSError, subprocess.SubprocessError):
+            out[c] = None
+    return out
+
+
+def drift_text(commits: dict[str, int], drift: dict[str, list[str] | None]) -> str:
+    """One sentence on the code the reused cells were measured with (``commits``: cells per
+    commit), for the document's header and the console; "" when no cell was reused."""
+    if not commits:
+        return ""
+    at = ", ".join(f"{c} ({n})" for c, n in sorted(commits.items()))
+    changed = {c: f for c, f in drift.items() if f}
+    unknown = [c for c, f in drift.items() if f is None]
+    text = f"The {sum(commits.values())} stored cells reused here were measured at commit {at}. "
+    dirty = " (a -dirty commit's own uncommitted changes are not known)" if any(c.endswith("-dirty") for c in commits) else ""
+    if not changed and not unknown:
+        return text + f"The trial code ({', '.join(MEASURED_CODE)}) has not changed since{dirty}."
+    parts = [f"since {c}: {', '.join(f[:6])}{' ...' if len(f) > 6 else ''}" for c, f in sorted(changed.items())]
+    if unknown:
+        parts.append(f"git cannot compare {', '.join(sorted(unknown))}")
+    return text + ("The trial code changed " + "; ".join(parts) + dirty
+                   + ". Rerun the cells without --resume if the change can move a result.")

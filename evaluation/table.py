@@ -26,7 +26,7 @@ from pathlib import Path
 
 from racecav.common import registry
 from racecav.common.config import Config
-from racecav.evaluation.store import CellStore
+from racecav.evaluation.store import CellStore, code_drift, drift_text
 
 SCENARIOS = registry.PAPER_SCENARIOS
 CONFLICT = registry.CONFLICT_SCENARIOS
@@ -213,9 +213,15 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         for n, doc_ in docs[sec].items():
             (out / f"suite-{suite_name}").mkdir(parents=True, exist_ok=True)
             (out / f"suite-{suite_name}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
+    commits: dict[str, int] = {}  # the code the reused cells were measured with
+    for c in (c for cs in cells.values() for c in cs if c.stored is not None):
+        commits[c.stored.git_commit] = commits.get(c.stored.git_commit, 0) + 1
+    provenance = drift_text(commits, code_drift(commits))
+    if provenance:
+        print(f"racecav eval --table: {provenance}", file=sys.stderr)
     keys_ = [n + ("+safety" if safety == "on" else "") for n in names]  # the main tables' rows
     doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections,
-                            suite=docs.get("suite"), free=docs.get("free"))
+                            suite=docs.get("suite"), free=docs.get("free"), provenance=provenance)
     for name in keys_:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
         print(f"{_label(name):34s} " + "  ".join(
@@ -357,8 +363,10 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
 
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
-                      error, sections=SECTIONS, suite: dict | None = None, free: dict | None = None) -> Path:
-    """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4."""
+                      error, sections=SECTIONS, suite: dict | None = None, free: dict | None = None,
+                      provenance: str = "") -> Path:
+    """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4;
+    ``provenance``: store.drift_text of the reused cells, in the header."""
     from racecav.common.bench import machine
     from racecav.common.scenario import load_scenario
     from racecav.common.vehicle import load_car
@@ -394,6 +402,8 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
             "them)") + ". Nothing here is typed by hand."),
         "",
     ]
+    if provenance:
+        lines += [provenance, ""]
     if error is not None:
         lines += [f"**PARTIAL**: the run stopped early ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
                   "cells marked PARTIAL hold fewer trials than requested.", ""]

@@ -283,6 +283,35 @@ def test_a_store_sees_the_cells_another_process_wrote(tmp_path):
     assert got is not None and [(t.seed, t.success) for t in got.trials] == [(t.seed, t.success) for t in res.trials]
 
 
+def test_code_drift_names_the_trial_code_changed_since_a_cell_was_measured(tmp_path):
+    """The store's key has no code digest: the table names the trial-code files changed since the
+    commit a reused cell records (a changed table writer is not trial code), and says when git
+    cannot tell."""
+    from racecav.evaluation.store import code_drift, drift_text
+
+    def git(*a):
+        return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *a], cwd=tmp_path,
+                              check=True, capture_output=True, text=True).stdout.strip()
+
+    git("init", "-q")
+    for f in ("sim/world.py", "evaluation/table.py", "evaluation/trials.py"):
+        (tmp_path / f).parent.mkdir(exist_ok=True)
+        (tmp_path / f).write_text("x = 1\n")
+    git("add", "-A")
+    git("commit", "-qm", "measured here")
+    rev = git("rev-parse", "--short=12", "HEAD")
+    assert code_drift([rev, rev + "-dirty"], tmp_path) == {rev: [], rev + "-dirty": []}
+    (tmp_path / "evaluation" / "table.py").write_text("x = 2\n")  # writes the document only
+    assert code_drift([rev], tmp_path) == {rev: []}
+    (tmp_path / "sim" / "world.py").write_text("x = 2\n")
+    (tmp_path / "evaluation" / "trials.py").write_text("x = 2\n")
+    drift = code_drift([rev, "unknown"], tmp_path)
+    assert drift == {rev: ["evaluation/trials.py", "sim/world.py"], "unknown": None}
+    text = drift_text({rev: 3, "unknown": 1}, drift)
+    assert f"since {rev}: evaluation/trials.py, sim/world.py" in text and "git cannot compare unknown" in text
+    assert "has not changed" in drift_text({rev: 3}, {rev: []}) and drift_text({}, {}) == ""
+
+
 def test_committed_results_are_what_the_committed_store_writes(tmp_path):
     """docs/results.md is what its own command (from its header) writes from the committed cells
     (docs/results-data) alone: every number of its tables comes from a stored cell measured with the
