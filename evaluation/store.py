@@ -15,8 +15,10 @@ and under the same run key (scenario file digest, controller, policy weights dig
 and trial count as asked. The key holds no digest of the code: a cell keeps the commit it was
 measured at, and code_drift names the files of the trial code (MEASURED_CODE) changed since, which
 the table prints and writes in the document's header (rerun those cells without --resume if the
-change matters: a changed docstring does not, a changed contact test does). One gzip file per (table row, group): ROW.scenarios.json.gz (the
-paper's and the conflict-timed scenarios) and ROW.suite-NAME.json.gz (one cell per suite file).
+change matters: a changed docstring does not, a changed contact test does).
+
+One gzip file per (table row, group): ROW.scenarios.json.gz (the paper's and the conflict-timed
+scenarios) and ROW.suite-NAME.json.gz (one cell per suite file).
 """
 
 from __future__ import annotations
