@@ -277,6 +277,16 @@ def open_suite(name_or_dir: str | Path) -> Suite:
         raise ValueError(f"suite {man}: invalid JSON: {e}") from None
 
 
+def unfiltered(spec: str) -> str:
+    """The suite a filtered suite was cut from (its suite.json's ``filtered_from``, written by
+    ``racecav train seen-filter``), else ``spec``: selection scores the whole source, never the
+    filtered training mix."""
+    try:
+        return open_suite(spec).manifest.get("filtered_from", spec)
+    except ValueError:  # a folder or file of scenarios, not a suite
+        return spec
+
+
 def scenario_sources(spec: str | Path, split: str = "train") -> list[tuple[Path, str]]:
     """(file, family) of a suite's split (suite NAME or folder with suite.json; family
     "<suite folder>/<family>" from its manifest), of a folder (every *.toml in it) or of one

@@ -74,8 +74,7 @@ def test_seen_filter_keeps_the_files_a_seeing_planner_passes(tmp_path):
     import shutil
 
     from racecav.cli import main
-    from racecav.common.scenario import SCENARIOS_DIR, scenario_sources
-    from racecav.training.seen_filter import unfiltered
+    from racecav.common.scenario import SCENARIOS_DIR, scenario_sources, unfiltered
 
     src = tmp_path / "src"
     (src / "train").mkdir(parents=True)

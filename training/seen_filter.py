@@ -40,17 +40,6 @@ def add_subcommands(sub) -> None:
     p.set_defaults(stage="seen-filter")
 
 
-def unfiltered(spec: str) -> str:
-    """The suite a seen-filtered suite was cut from (its suite.json's ``filtered_from``), else
-    ``spec``: the selection split is the whole source, never the filtered training mix."""
-    from racecav.common.scenario import open_suite
-
-    try:
-        return open_suite(spec).manifest.get("filtered_from", spec)
-    except ValueError:  # a folder or file of scenarios, not a suite
-        return spec
-
-
 def pass_rates(files: list[Path], draws: int, delay: int, seed: int, progress: bool = True) -> list[float]:
     """The seeing planner's success per file over ``draws`` draws of its randomisation (about
     1 CPU-s per 5 episodes: the conflict suite's 1400 files x 8 draws take 26 min)."""

@@ -278,7 +278,7 @@ def selection_cells(policy, env_cfg, trials: int, suite_episodes: int, conflict:
         # the first scenario source is the conflict suite (the whole of it, if training used a
         # seen-filtered cut); any others (e.g. clock-timed traffic, which a non-evading car may
         # pass) are only training mix
-        from racecav.training.seen_filter import unfiltered
+        from racecav.common.scenario import unfiltered
 
         sel_env = env_cfg.model_copy(update={"scenarios": unfiltered(env_cfg.scenarios.split(",")[0].strip())})
         row.update(eval_suite_fast(policy, sel_env, suite_episodes))
