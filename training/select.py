@@ -1628,7 +1628,7 @@ def _ablation_markdown() -> str:
           "only for guessing; without those, a turn begun before the car is in view should earn nothing while the "
           "paper-timed files still charge it. It did not: 30.0 M samples in 57 min (a median 9.3 k samples/s); "
           "its 16 evaluated checkpoints (1-30 M): the paper-timed left-to-right falls from 80 % (1 M) to 44-67 % "
-          "from 9 M on, and the paper-timed right-to-left with it (100 % up to 9 M, 65-74 % from 21 M on), while "
+          "from 9 M on, and the paper-timed right-to-left with it (99-100 % up to 9 M, 65-74 % from 21 M on), while "
           "the suite's cross-left rises to 70-80 % (row 31's best: 69 %) and the conflict-timed cells hold (94-100 / "
           "86-93 / 94-100 %); scores 0.84-0.93, never above row 31's, at most 6 of the 8 targets. The policy "
           "does not reason from files it can no longer lose; the feasible crossings still reward starting the "
