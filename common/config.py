@@ -466,6 +466,13 @@ class TrainConfig(Section):
     privileged_critic: bool = False
     """The critic also reads the other cars' positions and velocities (training only; the actor,
     the policy that ships, reads only the scans: training/privileged.py)."""
+    hold_until_seen: bool = False
+    """PPO's rollouts (training only): in a scenario episode the ego is driven straight along its
+    road at full throttle (training/expert.tracking_steer) until a car has returned a ray of its
+    scan or it is past its conflict point, whatever the policy's action; from then on the
+    policy drives (training/vec_env.FastVecEnv). A turn begun before a car is in view then earns
+    nothing, so only answers to what the scan shows are learnt; pair it with ``--bc-coef
+    --expert hold`` so the policy itself drives straight until then (the same labels)."""
     steer_bound_coef: float = Field(0.0, ge=0)
     """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
     actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""

@@ -469,3 +469,63 @@ def test_curriculum_boost_weights_a_family_and_names_a_wrong_one(tmp_path):
     args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--curriculum",
                               "--curriculum-boost", "conflicts/cross-left=2, conflicts/head-on=1.5"])
     assert config_from_args(args).env.curriculum_boost == {"conflicts/cross-left": 2.0, "conflicts/head-on": 1.5}
+
+
+def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
+    """TrainConfig.hold_until_seen (PPO's rollouts only): a scenario ego goes straight at full
+    throttle, whatever the action, until a car returns a ray of its scan (the conflict-timed
+    crossing from the left, about 3 m out) or it is past its conflict point (the paper-timed one,
+    hidden until the ego is through); then the action drives. The hold labels of the imitation
+    term (--expert hold) are the same worlds. Without the option the action drives at once."""
+    import argparse
+    import shutil
+
+    from racecav.common.config import EnvConfig
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.mirror import MirrorTeacher
+    from racecav.training.train import add_arguments, config_from_args
+
+    names = ("left-to-right", "conflict-left-to-right")
+    for name in names:
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
+    cfg = EnvConfig(n_envs=16, scenarios=str(tmp_path), scenario_share=1.0, n_obstacles=0)
+    hard_left = np.tile([-1.0, 1.0], (16, 1))  # coast, full left: never what tracking does
+    for hold in (True, False):
+        env = FastVecEnv(config=cfg, seed=3, hold_until_seen=hold)
+        env.reset()
+        (w,) = env.worlds
+        file = np.array([w.scenarios[k].name for k in w.scenario_index])
+        teacher = MirrorTeacher(None, env, list(names), relabel="hold")
+        ended = np.zeros(16, bool)
+        released_at = np.full(16, np.nan)  # the ego's x when the hold ended
+        turned_while_held = turned = speed_gain = 0.0
+        for _ in range(25):
+            held, x0, v0 = env.held.copy(), w.x[:, 0].copy(), w.v[:, 0].copy()
+            if hold:  # the labels' worlds (without the option the teacher keeps a latch of its own)
+                np.testing.assert_array_equal(teacher.mirrored(), held)
+            _obs, _r, done, _info = env.step(hard_left)
+            live = ~ended & ~done
+            yaw_err = np.abs(np.angle(np.exp(1j * (w.yaw[:, 0] - w.start_pose[:, 2]))))
+            turned_while_held = max(turned_while_held, float(yaw_err[held & live].max(initial=0.0)))
+            turned = max(turned, float(yaw_err[live].max(initial=0.0)))
+            speed_gain = min(speed_gain, float((w.v[:, 0] - v0)[held & live].min(initial=0.0)))
+            newly = held & ~env.held & live & np.isnan(released_at)
+            released_at[newly] = x0[newly]
+            ended |= done
+        if hold:
+            assert turned_while_held < 1e-6 and speed_gain >= 0.0  # straight, speeding up
+            seen_first = released_at[file == "conflict-left-to-right"]
+            passed_first = released_at[file == "left-to-right"]
+            assert seen_first.size and passed_first.size
+            assert np.all(seen_first < -1.5), seen_first  # freed when the car came into view
+            assert np.all(passed_first > -0.5), passed_first  # never seen before the crossing
+        else:
+            assert not env.held.any()
+            assert turned > 0.3  # nothing held: the action turns the egos at once
+        env.close()
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen"])
+    assert config_from_args(args).hold_until_seen is True
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts"])
+    assert config_from_args(args).hold_until_seen is False

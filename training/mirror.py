@@ -123,6 +123,9 @@ class MirrorTeacher:
         centre. Call it at every step (training/expert.latch_seen)."""
         from racecav.training.expert import latch_seen
 
+        if self.fast.hold_until_seen:  # the rollouts' own override: the same latch, kept by the env
+            return self.fast.held & np.concatenate([np.zeros(w.n_envs, bool) if m is None else m[w.scenario_index]
+                                                    for w, m in zip(self.fast.worlds, self._mirrored)])
         out = []
         for w, m, seen in zip(self.fast.worlds, self._mirrored, self._seen):
             if m is None:

@@ -25,6 +25,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
+from racecav.training.expert import latch_seen, tracking_steer
 from racecav.training.flow_reward import flow_reward, flow_weights
 from racecav.training.hold_heading import HoldRoad
 from racecav.training.privileged import N_PRIVILEGED, privileged_features
@@ -87,6 +88,10 @@ class FastVecEnv(VecEnv):
         parallel: the lidar on numba's threads).
     :param privileged: append the critic's privileged features to each observation (after the
         scans; training/privileged.py).
+    :param hold_until_seen: PPO's rollouts only (TrainConfig.hold_until_seen): in a scenario world
+        the ego is driven straight along its road at full throttle, whatever the action, while
+        ``held`` says so (no car has yet returned a ray of its scan this episode and it is short
+        of its conflict point). Evaluation never sets it.
     :param seed: seed of the reset randomisation (also settable with ``seed()``).
     """
 
@@ -98,7 +103,8 @@ class FastVecEnv(VecEnv):
                  scenarios: str | None = None, scenario_share: float | None = None,
                  contact_penalty: float | None = None, obs_stack: int | None = None,
                  progress_reward: float | None = None, brake_below: float | None = None,
-                 lane_keeping: float | None = None, privileged: bool = False, seed: int | None = None):
+                 lane_keeping: float | None = None, privileged: bool = False, seed: int | None = None,
+                 hold_until_seen: bool = False):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -142,6 +148,11 @@ class FastVecEnv(VecEnv):
             self.lane_keeping = LaneKeeping(self.worlds, self.slices, self.settings.lane_keeping,
                                             self.settings.lane_keeping_horizon_s)
         self.hold_heading = HoldRoad.from_settings(n, self.settings) if self.is_scenario.any() else None
+        self.hold_until_seen = hold_until_seen and bool(self.is_scenario.any())
+        self._seen = np.zeros(n, dtype=bool)  # hold_until_seen: a car has been in view this episode
+        self.held = np.zeros(n, dtype=bool)
+        """(N,) the worlds whose next action is overridden (hold_until_seen), for the state of the
+        newest observation: the imitation term's ``--expert hold`` labels read it."""
         if seed is not None:
             self.seed(seed)
 
@@ -162,7 +173,18 @@ class FastVecEnv(VecEnv):
             self.hold_heading.seen[:] = False
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._stack[:] = obs[:, None]
+        self._update_held()
         return self._stacked()
+
+    def _update_held(self) -> None:
+        """``held`` for the worlds' current state (after a step and its resets)."""
+        if not self.hold_until_seen:
+            return
+        for w, sl in zip(self.worlds, self.slices):
+            if w.actors is not None:
+                self._seen[sl] = latch_seen(w, self._seen[sl], np.arange(w.n_envs))
+                # every scenario's ego drives along +x to its conflict point at x = 0
+                self.held[sl] = ~self._seen[sl] & (w.x[:, 0] < 0.0)
 
     def _stacked(self) -> np.ndarray:
         """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
@@ -177,6 +199,12 @@ class FastVecEnv(VecEnv):
 
     def step_wait(self) -> VecEnvStepReturn:
         obs_parts, thr, a_d, col, trunc, succ, dprog = [], [], [], [], [], [], []
+        if self.hold_until_seen and self.held.any():  # straight at full throttle until a car is seen
+            self._actions = self._actions.copy()
+            for w, sl in zip(self.worlds, self.slices):
+                h = self.held[sl]
+                if h.any():
+                    self._actions[sl][h] = np.stack([np.ones(int(h.sum())), tracking_steer(w)[h]], axis=1)
         # from the state the actions are taken in
         lane = self.lane_keeping.penalty(self._actions) if self.lane_keeping is not None else None
         flow = [] if self.settings.flow_reward else None
@@ -244,6 +272,7 @@ class FastVecEnv(VecEnv):
                 self.hold_heading.reset(dones)
             if self.curriculum is not None:
                 self.curriculum.update()
+        self._update_held()
         return obs, rewards, dones, infos
 
     def close(self) -> None:
