@@ -476,7 +476,8 @@ def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
     throttle, whatever the action, until a car returns a ray of its scan (the conflict-timed
     crossing from the left, about 3 m out) or it is past its conflict point (the paper-timed one,
     hidden until the ego is through); then the action drives. The hold labels of the imitation
-    term (--expert hold) are the same worlds. Without the option the action drives at once."""
+    term (--expert hold) are the same worlds. Without the option the action drives at once;
+    --hold-families holds the files of the families it names only."""
     import argparse
     import shutil
 
@@ -523,9 +524,17 @@ def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
             assert not env.held.any()
             assert turned > 0.3  # nothing held: the action turns the egos at once
         env.close()
+    # --hold-families: only the named family is held, the other is the policy's from the start
+    env = FastVecEnv(config=cfg, seed=3, hold_until_seen=True, hold_families="conflict-left-to-right")
+    env.reset()
+    (w,) = env.worlds
+    file = np.array([w.scenarios[k].name for k in w.scenario_index])
+    assert env.held[file == "conflict-left-to-right"].all() and not env.held[file == "left-to-right"].any()
+    with pytest.raises(ValueError, match="hold_families: cross-left is not a suite or family"):
+        FastVecEnv(config=cfg, seed=3, hold_until_seen=True, hold_families="cross-left")
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen"])
-    assert config_from_args(args).hold_until_seen is True
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen", "--hold-families", "conflicts"])
+    assert config_from_args(args).hold_until_seen is True and config_from_args(args).hold_families == "conflicts"
     args = parser.parse_args(["overtake", "--scenarios", "conflicts"])
     assert config_from_args(args).hold_until_seen is False

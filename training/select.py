@@ -898,7 +898,7 @@ def _ablation_markdown() -> str:
                                                                           "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert_commit_s", "expert_seen",
                                                                           "expert", "mirror_families", "mirror_seen", "anchor_families", "mirror_symmetric",
                                                                           "mirror_augment", "steer_bound_coef", "sde_sample_freq", "hidden",
-                                                                          "privileged_critic", "hold_until_seen")
+                                                                          "privileged_critic", "hold_until_seen", "hold_families")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
             # a reset of the loaded policy's action std (None: kept as trained, not a change)
             + ([f"init_std {prev.init_std} -> {tc.init_std}"] if tc.init_std not in (None, prev.init_std) else [])) or "-"
