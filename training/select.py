@@ -863,7 +863,10 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-holddagger", "avoid-gsde-flow120"), ("avoid-holddagger-ppo", "avoid-gsde-holdtrack"),
             ("avoid-gsde-open", "avoid-gsde-flow120"), ("avoid-gsde-open-hold", "avoid-gsde-open"),
             ("avoid-gsde-open-hold-brake", "avoid-gsde-open-hold"), ("avoid-gsde-brake", "avoid-gsde-flow120"),
-            ("avoid-gsde-from-dagger", "avoid-gsde-flow120"), ("avoid-gsde-seen", "avoid-gsde-flow120"))
+            ("avoid-gsde-from-dagger", "avoid-gsde-flow120"), ("avoid-gsde-seen", "avoid-gsde-flow120"),
+            ("avoid-gsde-heldseen-nobc", "avoid-gsde-flow120"), ("avoid-gsde-heldseen-free", "avoid-gsde-heldseen-nobc"),
+            ("avoid-gsde-heldseen-track", "avoid-gsde-heldseen-free"),
+            ("avoid-gsde-heldseen-track-lr", "avoid-gsde-heldseen-track"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
@@ -914,7 +917,7 @@ def _ablation_markdown() -> str:
     pct = lambda v: f"{100 * float(v):.0f}"  # noqa: E731
     L = ["", "## The avoid policy: training on conflicts, one change per row", "",
          "In short: the shipped avoid is row 31 at 5 M. It meets 7 of the issue's 8 targets on the test seeds "
-         "(docs/results.md); the paper-timed left-to-right is at 82 % against 100 %. The rows below locate the "
+         "(docs/results.md); the paper-timed left-to-right is at 84 % [78, 88] against 100 %. The rows below locate the "
          "cause: before the crossing car is in its scan (about 2-3 m out, behind the intersection's corners) "
          "row 31 starts a left turn that wins the conflict-timed crossing from the left and loses some "
          "paper-timed ones, which a straight ego passes. Tried against that trade-off, all rejected:", "",
@@ -929,6 +932,8 @@ def _ablation_markdown() -> str:
          "- a privileged critic, a wider network (rows 38, 42, 47-48, 51);",
          "- straight-pass labels, with the car in view or before it (rows 44, 52-54);",
          "- a training mix without the conflicts that no evasion begun at first sight passes (row 60);",
+         "- the straight approach forced in training until a car is in view (rows 61-64): the answers to a car in view "
+         "are learnt from it, the approach the policy drives itself is not;",
          "- free intersections in the mix, with and without a charge for leaving the road (rows 55-56). Row 31 "
          "turns up the crossing road at an intersection with no car as well (1 % of the open suite through the "
          "services, where a straight car passes 100 %: docs/world.md and the figure below the rows' notes): the turn "
@@ -1633,7 +1638,53 @@ def _ablation_markdown() -> str:
           "86-93 / 94-100 %); scores 0.84-0.93, never above row 31's, at most 6 of the 8 targets. The policy "
           "does not reason from files it can no longer lose; the feasible crossings still reward starting the "
           "evasion early (it reacts slower than the privileged planner), and the mix it lost made the side "
-          "crossings it kept the curriculum's hard ones. Stopped, rejected. ", ""]
+          "crossings it kept the curriculum's hard ones. Stopped, rejected. "
+          "Rows 61-64 force the straight approach in training instead of charging or imitating it. `--hold-until-seen` "
+          "(TrainConfig.hold_until_seen, training/vec_env.FastVecEnv): in PPO's scenario episodes the ego is driven "
+          "straight along its road at full throttle, whatever the policy's action, until a car has returned a ray of its "
+          "scan or it is past its conflict point; from there the policy drives. Why: held so, the privileged planner "
+          "passes the paper's six scenario files in the fast world (both timings of each side), freed at first sight "
+          "or 4 control periods later (256 draws of each file's randomisation: 100 % of every file at first sight; 4 "
+          "periods later 98 % of the conflict-timed right-to-left, 98 % of the conflict-timed left-to-right, 100 % "
+          "of the others; `python -c \"from pathlib import Path; from racecav.training.seen_filter import "
+          "pass_rates; print(pass_rates([Path('common/data/scenarios', n + '.toml') for n in ('right-to-left', "
+          "'head-to-head', 'left-to-right', 'conflict-right-to-left', 'conflict-head-to-head', "
+          "'conflict-left-to-right')], draws=256, delay=4, seed=0))\"`, delay=0 for first sight), so no conflict of the benchmark needs a turn begun before the car "
+          "is in view, and in a held episode such a turn earns nothing. Row 61 (avoid-gsde-heldseen-nobc): row 31's "
+          "flags and mix from its 5 M with `--hold-until-seen`. The answers to a car in view are learnt from the "
+          "straight approach within 1-2 M samples (curriculum.csv at 7.5 M, held episodes: the conflict suite's "
+          "cross-left 65-70 %, cross-right 84-89 %, staggered 83-90 %, braking 86-89 %, turning 88-92 %). But the "
+          "steps before a car is in view no longer move the policy (its action there changes nothing, so PPO's "
+          "gradient there is noise), and evaluated as it ships, driving those steps itself, it keeps row 31's turn: "
+          "8.1 M samples in 16 min (a median 8.6 k samples/s), 5 checkpoints evaluated: conflict-timed 95-100 / "
+          "83-97 / 89-98 %, paper-timed 100 / 97-100 / 60-73 %, suite 90-93 %, lowest family 66-75 %, free column "
+          "0-1 %. Imitating the straight approach on the held steps (`--bc-coef --expert hold`; the labels read the "
+          "env's latch) pulls the answers after the car is in view with it, as in rows 52-53: at `--bc-coef 0.05` from "
+          "row 31's 5 M the held conflict families fell within 1 M samples (cross-right 54 -> 6-8 %, staggered "
+          "54 -> 0-2 %, cross-left 48 -> 17-25 %; stopped at 4.3 M), and at `--bc-coef 0.01 --bc-grad-steps 5` from row "
+          "61's 3 M more slowly (cross-left 68 -> 45 %, cross-right 89 -> 45 %, staggered 91 -> 53 % over 3.8 M "
+          "samples) while the labels were still far from met (steering agreement 32-38 %); both stopped without "
+          "evaluation, not in the table. Row 62 (avoid-gsde-heldseen-free) leaves the approach to the policy where a "
+          "turn cannot pay: `--hold-families conflicts,traffic` holds the conflict and traffic suites only, and the "
+          "policy drives the paper-timed files, which a straight fast ego passes, from the start; from row 61's 8 M. "
+          "9.0 M samples in 18 min; its 5 evaluated checkpoints: paper-timed left-to-right 44-76 % (76 % at 2 M, then "
+          "44-60 %), conflict-timed left-to-right 70-92 %, suite 88-90 %, lowest family 54-70 %, free column 0-2 %, "
+          "scores 0.85-0.91. Row 63 (avoid-gsde-heldseen-track) adds row 50's charge to the free episodes' approach "
+          "(`--hold-track 10`; a held episode is straight and pays nothing): 9.6 M samples in 19 min, 7 evaluated "
+          "checkpoints: paper-timed left-to-right 64-90 % (90 % at 2 M: conflict-timed 99 / 83 / 94 %, paper-timed "
+          "100 / 94 / 90 %, suite 90 %, lowest family 70 %: 6 of the 8 targets), free column 0-2 %, scores 0.83-0.92. "
+          "Row 64 (avoid-gsde-heldseen-track-lr) is row 63 at `--lr 1.5e-4`: 3.9 M samples in 8 min, 4 checkpoints: "
+          "paper-timed left-to-right 78-86 %, conflict-timed left-to-right 66-83 %, scores 0.87-0.90. All rejected. "
+          "Row 63's last checkpoint still turns up the crossing road to the left at a free intersection in all of 10 "
+          "trials (the figure below), as row 31 does: within 10 M samples neither the paper-timed files nor the charge "
+          "on them undo that habit of the intersection. Not measured here: whether the conflicts' rewards after the "
+          "car is in view (the flow term pays 120 per metre along a crossing car's travel, progress 18.5 per metre) "
+          "keep the turn up the crossing road worth more than the straight pass in the policy's one answer to an "
+          "intersection. ", "",
+          "![row 63 on a free intersection](img/training_paths_heldseen_track.png)", "",
+          "Row 63's last checkpoint (9.6 M) on a free intersection: `racecav train paths --policy "
+          "training/checkpoints/avoid-gsde-heldseen-track/latest.zip --scenarios "
+          "runs/suites/open/test/intersection-0000.toml --trials 10 --out docs/img/training_paths_heldseen_track.png`.", ""]
     L += ["![the paths of row 38](img/training_paths_mirrorbc_wide.png)", "",
           "Row 38's last checkpoint: `racecav train paths --policy training/checkpoints/avoid-gsde-mirrorbc-wide/latest.zip "
           "--trials 10 --out docs/img/training_paths_mirrorbc_wide.png`.", "",
