@@ -472,14 +472,15 @@ class TrainConfig(Section):
     scan or it is past its conflict point, whatever the policy's action; from then on the
     policy drives (training/vec_env.FastVecEnv). A turn begun before a car is in view then earns
     nothing, so only answers to what the scan shows are learnt. The policy still has to learn to
-    drive straight until then itself: ``--bc-coef --expert hold`` labels those steps (row 61 of
-    docs/training.md: the labels also pull its answers to a car in view), or ``hold_families``
-    leaves some families to it."""
+    drive straight until then itself: ``--bc-coef --expert hold`` labels those steps, or
+    ``hold_families`` leaves some families to it. Measured (docs/training.md, rows 61-65): the
+    answers to a car in view are learnt; the labels pull them towards straight too, and the
+    free families did not undo the turn the policy starts before a car is in view."""
     hold_families: str = ""
     """hold_until_seen: the scenario families it holds (comma-separated: a suite, ``conflicts``; a
     family of every suite, ``cross-left``; or of one, ``conflicts/cross-left``); "": every one.
-    The policy drives the others from the start, and their steps before a car is in view teach
-    it how to approach a crossing it cannot yet see."""
+    The policy drives the others from the start: their steps before a car is in view are the
+    ones that teach it how to approach a crossing it cannot yet see."""
     steer_bound_coef: float = Field(0.0, ge=0)
     """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
     actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""
