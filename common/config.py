@@ -520,6 +520,11 @@ class TrainConfig(Section):
     """overtake with bc_coef and expert mirror: families (comma-separated) whose steps with a car
     near on the ego's right are labelled with the teacher's own action (e.g. cross-right, the
     mirror pair), besides the anchor steps; training/mirror.MirrorTeacher.anchored."""
+    anchor_seen: bool = False
+    """overtake with bc_coef and expert hold: also label every step of a ``mirror_families`` scenario
+    after the hold ends (a car has been in the ego's scan, or the ego is past the crossing's centre)
+    with the teacher's own action, so that the straight labels before it cannot pull the answers
+    after it (training/mirror.MirrorTeacher.anchored)."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)

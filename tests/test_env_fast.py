@@ -538,3 +538,54 @@ def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
     assert config_from_args(args).hold_until_seen is True and config_from_args(args).hold_families == "conflicts"
     args = parser.parse_args(["overtake", "--scenarios", "conflicts"])
     assert config_from_args(args).hold_until_seen is False
+
+
+def test_anchor_seen_labels_the_steps_after_the_hold(tmp_path, capsys):
+    """--expert hold --anchor-seen (training/mirror.MirrorTeacher): under the hold-until-seen
+    override, every step of a held family is labelled, and only once: straight at full throttle
+    while held, the frozen policy's own action after the hold ends. Without the flag the steps
+    after the hold are not labelled; it is refused with another teacher and on the command line
+    without --expert hold."""
+    import argparse
+    import shutil
+
+    from racecav.common.config import EnvConfig
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.expert import tracking_steer
+    from racecav.training.mirror import MirrorTeacher
+    from racecav.training.select import ConstantAction
+    from racecav.training.train import add_arguments, open_run
+
+    for name in ("left-to-right", "conflict-left-to-right"):
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
+    cfg = EnvConfig(n_envs=16, scenarios=str(tmp_path), scenario_share=1.0, n_obstacles=0)
+    env = FastVecEnv(config=cfg, seed=3, hold_until_seen=True)
+    obs = env.reset()
+    (w,) = env.worlds
+    own = ConstantAction(0.3)  # the frozen policy: coasting straight, never a tracking label
+    teacher = MirrorTeacher(own, env, ["conflict-left-to-right"], relabel="hold", anchor_seen=True)
+    plain = MirrorTeacher(own, env, ["conflict-left-to-right"], relabel="hold")
+    n_held = n_anchored = 0
+    for _ in range(40):
+        mine = np.array([w.scenarios[k].name == "conflict-left-to-right" for k in w.scenario_index])
+        label, held = teacher.labels(obs)
+        anchored = teacher.anchored()
+        track = tracking_steer(w)
+        np.testing.assert_array_equal(held, env.held & mine)
+        np.testing.assert_array_equal(anchored, mine & ~env.held)  # every step of the family, once
+        np.testing.assert_allclose(label[held], np.stack([np.ones(int(held.sum())), track[held]], axis=1))
+        np.testing.assert_allclose(label[anchored], own(obs)[anchored])
+        plain.labels(obs)
+        assert not plain.anchored().any()
+        n_held, n_anchored = n_held + int(held.sum()), n_anchored + int(anchored.sum())
+        obs, _r, _done, _info = env.step(np.tile([0.3, 0.0], (16, 1)))
+    assert n_held > 0 and n_anchored > 0
+    with pytest.raises(ValueError, match="--anchor-seen anchors the steps after --expert hold"):
+        MirrorTeacher(own, env, ["conflict-left-to-right"], relabel="track", anchor_seen=True)
+    env.close()
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen", "--anchor-seen",
+                              "--bc-coef", "0.05", "--expert", "mirror", "--init-from", "x.zip"])
+    assert open_run(args, None, tmp_path / "run") is None
+    assert "--anchor-seen anchors the steps after --expert hold's labels" in capsys.readouterr().out

@@ -85,7 +85,7 @@ def mirror_teacher(tc, fast):
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
     return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
-                         relabel=tc.expert)
+                         relabel=tc.expert, anchor_seen=tc.anchor_seen)
 
 
 class _Stop:

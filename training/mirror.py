@@ -70,17 +70,24 @@ class MirrorTeacher:
         can see the car, and that turn decides the crossings from the left; before a car is seen
         the scans of the two timings and of the two sides are the same, so one label fits all.
         Rows 52-53 of docs/training.md: fitting it moves the answers after the car is seen too.
+    :param anchor_seen: relabel hold: :meth:`anchored` also returns every step of a ``families``
+        scenario after its hold ended (a car seen, or the ego past the crossing's centre), whose
+        label is the policy's own action: the answers after the car is in view are held where they
+        were while the steps before it are fitted to the straight approach.
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
 
     def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = (),
-                 seen_only: bool = False, relabel: str = "mirror"):
+                 seen_only: bool = False, relabel: str = "mirror", anchor_seen: bool = False):
         if relabel not in RELABELS:
             raise ValueError(f"relabel: {' | '.join(RELABELS)}, not {relabel!r}")
         if relabel == "hold" and seen_only:
             raise ValueError("--expert hold labels the steps before a car is seen: --mirror-seen contradicts it")
+        if anchor_seen and relabel != "hold":
+            raise ValueError("--anchor-seen anchors the steps after --expert hold's labels: use it with --expert hold")
         self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel
+        self.anchor_seen = anchor_seen
         qualified = {f for w in fast_env.worlds if w.actors is not None for f in w.scenario_families}
         have = sorted(qualified | {f.split("/")[-1] for f in qualified})
         for flag, names in (("--mirror-families", families), ("--anchor-families", anchor_families)):
@@ -92,6 +99,7 @@ class MirrorTeacher:
         self._mirrored = self._per_file(set(families))
         self._anchored = self._per_file(set(anchor_families))
         self._seen = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]  # hold: latched per episode
+        self._held = np.zeros(fast_env.num_envs, bool)  # hold: the newest mirrored() mask
 
     def _per_file(self, names: set[str]) -> list[np.ndarray | None]:
         # a name matches its family in every suite (cross-left) or in one (paper-timed/cross-left)
@@ -144,12 +152,22 @@ class MirrorTeacher:
         symmetric, and the policy's own label keeps one answer per scan (mirrored labels there
         would teach, e.g., the mirrored lane position for the same empty road). Relabel hold: the
         worlds of those families where no car has been seen yet (:meth:`_unseen`)."""
-        return self._unseen() if self.relabel == "hold" else self._near(self._mirrored, +1.0)
+        if self.relabel == "hold":
+            self._held = self._unseen()
+            return self._held
+        return self._near(self._mirrored, +1.0)
 
     def anchored(self) -> np.ndarray:
         """(N,) bool: the worlds of an anchor family whose ego has an actor near on its right
-        (the mirror image of :meth:`mirrored`); their label is the policy's own action."""
-        return self._near(self._anchored, -1.0)
+        (the mirror image of :meth:`mirrored`); their label is the policy's own action. With
+        ``anchor_seen``, also the steps of a ``families`` scenario that :meth:`mirrored` (call it
+        first, at the same step) did not hold."""
+        near = self._near(self._anchored, -1.0)
+        if self.anchor_seen:
+            fam = np.concatenate([np.zeros(w.n_envs, bool) if m is None else m[w.scenario_index]
+                                  for w, m in zip(self.fast.worlds, self._mirrored)])
+            near |= fam & ~self._held
+        return near
 
     def labels(self, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(labels (N, 2), relabelled (N,)) for the raw (not normalised) stacked scans ``raw_obs``:
