@@ -37,6 +37,12 @@ def _curve(run_dir: Path) -> list[int]:
         return [int(float(r["timesteps"])) for r in csv.DictReader(f)]
 
 
+def _updates_logged(run_dir: Path) -> list[bool]:
+    """Per progress.csv row: whether it holds the PPO update's values (train/*)."""
+    with (run_dir / "progress.csv").open() as f:
+        return [r["approx_kl"] != "" and r["value_loss"] != "" for r in csv.DictReader(f)]
+
+
 def _adam_steps(zip_path: Path) -> int:
     from stable_baselines3 import PPO
 
@@ -58,6 +64,9 @@ def test_resume_continues_run(tmp_path):
     first = json.loads((run / "latest.json").read_text())
     assert first["timesteps"] == 512 and first["final"]
     assert _curve(run) == [128, 256, 384, 512]
+    # each row holds the update on its own rollout: the first row has one, the last is not lost
+    # (SB3 dumps a rollout's log before its update; training/train._csv_writer waits for it)
+    assert _updates_logged(run) == [True] * 4
     assert _adam_steps(run / "latest.zip") == 4 * ADAM_STEPS_PER_UPDATE
     count0 = _obs_count(run / "latest.vecnorm.pkl")
 
@@ -68,6 +77,7 @@ def test_resume_continues_run(tmp_path):
     last = json.loads((run / "latest.json").read_text())
     assert last["timesteps"] == 1024
     assert _curve(run) == list(range(128, 1025, 128))  # one curve, no restart, no duplicates
+    assert _updates_logged(run) == [True] * 8
     # Adam continued (a fresh optimizer would count only the 4 updates after the resume)
     assert _adam_steps(run / "latest.zip") == 8 * ADAM_STEPS_PER_UPDATE
     # normalisation statistics continued too

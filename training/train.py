@@ -662,7 +662,12 @@ _CSV_CLASS = None
 
 
 def _csv_writer(path: Path):
-    """SB3 KVWriter appending a fixed set of columns to progress.csv (resumable)."""
+    """SB3 KVWriter appending a fixed set of columns to progress.csv (resumable).
+
+    SB3's on-policy loop dumps the log after each rollout and before that rollout's update, so
+    the train/* values of a dump are the previous update's. A row is therefore written one dump
+    late, with the train/* values of the update on its own rollout; ``flush`` writes the last one
+    with the values the logger holds when learning ends (its update, if it ran)."""
     global _CSV_CLASS
     if _CSV_CLASS is None:
         from stable_baselines3.common.logger import KVWriter
@@ -671,20 +676,35 @@ def _csv_writer(path: Path):
             def __init__(self, path: Path):
                 self.path = path
                 self.extra: dict = {}
+                self.pending: dict | None = None  # the newest rollout's row, waiting for its update
 
-            def write(self, key_values, key_excluded, step=0):
+            @staticmethod
+            def _fields(key_values, train: bool) -> dict:
+                return {k.split("/")[-1]: v for k, v in key_values.items()
+                        if k.startswith("train/") == train and k.split("/")[-1] in CSV_FIELDS}
+
+            def _emit(self, train: dict) -> None:
+                row, self.pending = self.pending, None
+                if row is None:
+                    return
+                row.update({k: v for k, v in train.items() if k not in row})  # extra's std stays
                 new = not self.path.is_file() or self.path.stat().st_size == 0
-                row = {"timesteps": key_values.get("time/total_timesteps", step)}
-                row.update(self.extra)
-                for k, v in key_values.items():
-                    name = k.split("/")[-1]
-                    if name in CSV_FIELDS and name not in row:
-                        row[name] = v
                 with self.path.open("a", newline="") as f:
                     w = csv.DictWriter(f, CSV_FIELDS, extrasaction="ignore")
                     if new:
                         w.writeheader()
                     w.writerow(row)
+
+            def write(self, key_values, key_excluded, step=0):
+                self._emit(self._fields(key_values, train=True))
+                row = {"timesteps": key_values.get("time/total_timesteps", step), **self.extra}
+                row.update({k: v for k, v in self._fields(key_values, train=False).items() if k not in row})
+                self.pending = row
+
+            def flush(self, key_values) -> None:
+                """Write the pending row with the train/* values in ``key_values`` (the logger's
+                values after the last update, not dumped by SB3)."""
+                self._emit(self._fields(key_values, train=True))
 
             def close(self):
                 pass
@@ -779,6 +799,10 @@ def _make_callback_class():
         def close(self) -> None:
             if self.bar is not None:
                 self.bar.close()
+            if getattr(self, "model", None) is not None:  # progress.csv's last row, with its update's values
+                for fmt in self.model.logger.output_formats:
+                    if isinstance(fmt, _CSV_CLASS):
+                        fmt.flush(self.model.logger.name_to_value)
 
     return _TrainCallback
 
