@@ -481,6 +481,11 @@ class TrainConfig(Section):
     family of every suite, ``cross-left``; or of one, ``conflicts/cross-left``); "": every one.
     The policy drives the others from the start: their steps before a car is in view are the
     ones that teach it how to approach a crossing it cannot yet see."""
+    hold_through: str = ""
+    """hold_until_seen: of the held families, those held straight to the conflict point even once a
+    car is in view (comma-separated, as hold_families; "": none), e.g. ``paper-timed``, whose cars
+    a straight fast ego passes ahead of: with ``--expert hold`` their whole approach is labelled
+    straight, so the policy must tell them from a car it has to let pass by what it sees."""
     steer_bound_coef: float = Field(0.0, ge=0)
     """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
     actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""

@@ -477,7 +477,8 @@ def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
     crossing from the left, about 3 m out) or it is past its conflict point (the paper-timed one,
     hidden until the ego is through); then the action drives. The hold labels of the imitation
     term (--expert hold) are the same worlds. Without the option the action drives at once;
-    --hold-families holds the files of the families it names only."""
+    --hold-families holds the files of the families it names only; --hold-through holds those it
+    names to the conflict point, car in view or not."""
     import argparse
     import shutil
 
@@ -532,10 +533,27 @@ def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
     assert env.held[file == "conflict-left-to-right"].all() and not env.held[file == "left-to-right"].any()
     with pytest.raises(ValueError, match="hold_families: cross-left is not a suite or family"):
         FastVecEnv(config=cfg, seed=3, hold_until_seen=True, hold_families="cross-left")
+    # --hold-through: the conflict-timed file is held to its conflict point though its car is in view
+    for through in ("", "conflict-left-to-right"):
+        env = FastVecEnv(config=cfg, seed=3, hold_until_seen=True, hold_through=through)
+        env.reset()
+        (w,) = env.worlds
+        held_in_view = 0  # steps held with a car in the ego's scan
+        for _ in range(25):
+            held = env.held.copy()
+            held_in_view += int((held & w.seen_by_agent(np.arange(16)).any(axis=1)).sum())
+            _obs, _r, done, _info = env.step(hard_left)
+            if through:  # short of the conflict point, only the episode's end (the car, met straight) frees it
+                assert not (held & ~env.held & ~done & (w.x[:, 0] < 0.0)).any()
+        assert (held_in_view > 0) == bool(through), held_in_view
+    with pytest.raises(ValueError, match="hold_through: cross-left is not a suite or family"):
+        FastVecEnv(config=cfg, seed=3, hold_until_seen=True, hold_through="cross-left")
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen", "--hold-families", "conflicts"])
+    args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen", "--hold-families", "conflicts",
+                              "--hold-through", "paper-timed"])
     assert config_from_args(args).hold_until_seen is True and config_from_args(args).hold_families == "conflicts"
+    assert config_from_args(args).hold_through == "paper-timed"
     args = parser.parse_args(["overtake", "--scenarios", "conflicts"])
     assert config_from_args(args).hold_until_seen is False
 

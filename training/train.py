@@ -44,7 +44,7 @@ log = logging.getLogger("racecav.train")
 TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
                "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
                "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
-               "sde_sample_freq", "hidden", "privileged_critic", "hold_until_seen", "hold_families")
+               "sde_sample_freq", "hidden", "privileged_critic", "hold_until_seen", "hold_families", "hold_through")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
@@ -226,7 +226,8 @@ def make_venv(tc, seed: int):
     from racecav.training.vec_env import FastVecEnv
 
     return VecMonitor(FastVecEnv(config=tc.env, seed=seed, privileged=tc.privileged_critic,
-                                 hold_until_seen=tc.hold_until_seen, hold_families=tc.hold_families))
+                                 hold_until_seen=tc.hold_until_seen, hold_families=tc.hold_families,
+                                 hold_through=tc.hold_through))
 
 
 def _ppo_kwargs(tc) -> dict:
@@ -385,8 +386,8 @@ def open_run(args, cfg, run_dir: Path):
         print("racecav train: --privileged-critic is a PPO critic for racecav train overtake's rollouts, without "
               "--mirror-symmetric, --mirror-augment and --bc-coef (their observations are the scans alone)")
         return None
-    if tc.hold_families and not tc.hold_until_seen:
-        print("racecav train: --hold-families names what --hold-until-seen holds; add --hold-until-seen")
+    if (tc.hold_families or tc.hold_through) and not tc.hold_until_seen:
+        print("racecav train: --hold-families and --hold-through name what --hold-until-seen holds; add --hold-until-seen")
         return None
     if tc.hold_until_seen and (tc.stage == "dagger" or not tc.env.scenarios):
         print("racecav train: --hold-until-seen drives PPO's scenario episodes (racecav train overtake --scenarios ...)")

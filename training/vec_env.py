@@ -32,10 +32,11 @@ from racecav.training.privileged import N_PRIVILEGED, privileged_features
 from racecav.training.proximity import proximity_penalty
 
 
-def family_mask(world, names: str) -> np.ndarray:
+def family_mask(world, names: str, what: str = "hold_families") -> np.ndarray:
     """(files of a scenario FastWorld,) bool: the files whose family is one of ``names``
     (comma-separated: a suite, ``conflicts``; a family of every suite, ``cross-left``; or of one,
-    ``conflicts/cross-left``; "": every file). A name that matches no family is an error."""
+    ``conflicts/cross-left``; "": every file). A name that matches no family is an error that
+    starts with ``what`` (the setting it came from)."""
     fams = world.scenario_families
     wanted = [n.strip() for n in names.split(",") if n.strip()]
     if not wanted:
@@ -43,7 +44,7 @@ def family_mask(world, names: str) -> np.ndarray:
     parts = [(f, *f.rpartition("/")[::2]) for f in fams]  # (suite/family, suite, family)
     unknown = [n for n in wanted if not any(n in p for p in parts)]
     if unknown:
-        raise ValueError(f"hold_families: {', '.join(unknown)} is not a suite or family of the scenarios "
+        raise ValueError(f"{what}: {', '.join(unknown)} is not a suite or family of the scenarios "
                          f"({', '.join(sorted(set(fams)))})")
     return np.array([any(n in p for n in wanted) for p in parts])
 
@@ -109,6 +110,8 @@ class FastVecEnv(VecEnv):
         ``held`` says so (no car has yet returned a ray of its scan this episode and it is short
         of its conflict point). Evaluation never sets it.
     :param hold_families: the scenario families it holds (TrainConfig.hold_families; "": all).
+    :param hold_through: of those, the families held to the conflict point even once a car is
+        in view (TrainConfig.hold_through; "": none).
     :param seed: seed of the reset randomisation (also settable with ``seed()``).
     """
 
@@ -121,7 +124,7 @@ class FastVecEnv(VecEnv):
                  contact_penalty: float | None = None, obs_stack: int | None = None,
                  progress_reward: float | None = None, brake_below: float | None = None,
                  lane_keeping: float | None = None, privileged: bool = False, seed: int | None = None,
-                 hold_until_seen: bool = False, hold_families: str = ""):
+                 hold_until_seen: bool = False, hold_families: str = "", hold_through: str = ""):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -168,6 +171,8 @@ class FastVecEnv(VecEnv):
         self.hold_until_seen = hold_until_seen and bool(self.is_scenario.any())
         self._hold_file = [family_mask(w, hold_families) if self.hold_until_seen and w.actors is not None else None
                            for w in self.worlds]
+        self._through = [family_mask(w, hold_through, "hold_through") if self.hold_until_seen and hold_through
+                         and w.actors is not None else None for w in self.worlds]
         self._seen = np.zeros(n, dtype=bool)  # hold_until_seen: a car has been in view this episode
         self.held = np.zeros(n, dtype=bool)
         """(N,) the worlds whose next action is overridden (hold_until_seen), for the state of the
@@ -199,12 +204,14 @@ class FastVecEnv(VecEnv):
         """``held`` for the worlds' current state (after a step and its resets)."""
         if not self.hold_until_seen:
             return
-        for w, sl, files in zip(self.worlds, self.slices, self._hold_file):
+        for w, sl, files, through in zip(self.worlds, self.slices, self._hold_file, self._through):
             if files is not None:
                 mine = files[w.scenario_index]
                 envs = np.flatnonzero(mine)
                 seen = self._seen[sl]  # a view: updated in place
                 seen[envs] = latch_seen(w, seen[envs], envs)
+                if through is not None:  # held whatever is in view
+                    seen &= ~through[w.scenario_index]
                 # every scenario's ego drives along +x to its conflict point at x = 0
                 self.held[sl] = mine & ~seen & (w.x[:, 0] < 0.0)
 
