@@ -548,6 +548,19 @@ def test_hold_until_seen_drives_straight_until_a_car_is_seen(tmp_path):
         assert (held_in_view > 0) == bool(through), held_in_view
     with pytest.raises(ValueError, match="hold_through: cross-left is not a suite or family"):
         FastVecEnv(config=cfg, seed=3, hold_until_seen=True, hold_through="cross-left")
+    # a family of one world only (no crossing on the road world) is no error; the road is not held
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    shutil.copy(SCENARIOS_DIR / "conflict-left-to-right.toml", mixed)
+    text = (SCENARIOS_DIR / "head-to-head.toml").read_text()
+    (mixed / "road-head-on.toml").write_text(text.replace('world = "intersection"', 'world = "road"')
+                                             .replace('name = "head-to-head"', 'name = "road-head-on"'))
+    env = FastVecEnv(config=cfg.model_copy(update={"scenarios": str(mixed)}), seed=3, hold_until_seen=True,
+                     hold_families="conflict-left-to-right", hold_through="conflict-left-to-right")
+    env.reset()
+    assert sorted(w.world.name for w in env.worlds) == ["intersection", "road"]
+    road = np.concatenate([np.full(w.n_envs, w.world.name == "road") for w in env.worlds])
+    assert env.held[~road].all() and not env.held[road].any()
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     args = parser.parse_args(["overtake", "--scenarios", "conflicts", "--hold-until-seen", "--hold-families", "conflicts",

@@ -32,21 +32,30 @@ from racecav.training.privileged import N_PRIVILEGED, privileged_features
 from racecav.training.proximity import proximity_penalty
 
 
-def family_mask(world, names: str, what: str = "hold_families") -> np.ndarray:
-    """(files of a scenario FastWorld,) bool: the files whose family is one of ``names``
+def family_mask(worlds, names: str, what: str = "hold_families") -> list[np.ndarray | None]:
+    """Per FastWorld of ``worlds``: (files,) bool, the files whose family is one of ``names``
     (comma-separated: a suite, ``conflicts``; a family of every suite, ``cross-left``; or of one,
-    ``conflicts/cross-left``; "": every file). A name that matches no family is an error that
-    starts with ``what`` (the setting it came from)."""
-    fams = world.scenario_families
+    ``conflicts/cross-left``; "": every file); None for a world without scenarios. A name that
+    matches no family of any of the worlds is an error that starts with ``what`` (the setting it
+    came from); a world may lack it (the road world has no crossings)."""
     wanted = [n.strip() for n in names.split(",") if n.strip()]
-    if not wanted:
-        return np.ones(len(fams), dtype=bool)
-    parts = [(f, *f.rpartition("/")[::2]) for f in fams]  # (suite/family, suite, family)
-    unknown = [n for n in wanted if not any(n in p for p in parts)]
+    out, matched = [], set()
+    for w in worlds:
+        if w.actors is None:
+            out.append(None)
+            continue
+        fams = w.scenario_families
+        if not wanted:
+            out.append(np.ones(len(fams), dtype=bool))
+            continue
+        parts = [(f, *f.rpartition("/")[::2]) for f in fams]  # (suite/family, suite, family)
+        matched |= {n for n in wanted if any(n in p for p in parts)}
+        out.append(np.array([any(n in p for n in wanted) for p in parts]))
+    unknown = [n for n in wanted if n not in matched]
     if unknown:
-        raise ValueError(f"{what}: {', '.join(unknown)} is not a suite or family of the scenarios "
-                         f"({', '.join(sorted(set(fams)))})")
-    return np.array([any(n in p for n in wanted) for p in parts])
+        have = sorted({f for w in worlds if w.actors is not None for f in w.scenario_families})
+        raise ValueError(f"{what}: {', '.join(unknown)} is not a suite or family of the scenarios ({', '.join(have)})")
+    return out
 
 
 class FamilyCurriculum:
@@ -169,10 +178,10 @@ class FastVecEnv(VecEnv):
                                             self.settings.lane_keeping_horizon_s)
         self.hold_heading = HoldRoad.from_settings(n, self.settings) if self.is_scenario.any() else None
         self.hold_until_seen = hold_until_seen and bool(self.is_scenario.any())
-        self._hold_file = [family_mask(w, hold_families) if self.hold_until_seen and w.actors is not None else None
-                           for w in self.worlds]
-        self._through = [family_mask(w, hold_through, "hold_through") if self.hold_until_seen and hold_through
-                         and w.actors is not None else None for w in self.worlds]
+        held = self.hold_until_seen
+        self._hold_file = family_mask(self.worlds, hold_families) if held else [None] * len(self.worlds)
+        self._through = (family_mask(self.worlds, hold_through, "hold_through") if held and hold_through
+                         else [None] * len(self.worlds))
         self._seen = np.zeros(n, dtype=bool)  # hold_until_seen: a car has been in view this episode
         self.held = np.zeros(n, dtype=bool)
         """(N,) the worlds whose next action is overridden (hold_until_seen), for the state of the
