@@ -98,3 +98,44 @@ def test_seen_filter_keeps_the_files_a_seeing_planner_passes(tmp_path):
         main(["train", "seen-filter", "--source", str(src), "--out", str(src)])
     with pytest.raises(SystemExit, match="no suite.json"):
         main(["train", "seen-filter", "--source", str(tmp_path / "nothing"), "--out", str(out)])
+
+
+class _Steer:
+    """A driver of the paper's view that ignores its scan: throttle 1 and a fixed steering action."""
+
+    obs_stack, obs_stride, brake_below, metadata = 1, 1, None, {}
+
+    def __init__(self, steer: float):
+        self.steer = steer
+
+    def __call__(self, obs):
+        import numpy as np
+
+        return np.tile(np.array([1.0, self.steer], np.float32), (len(obs), 1))
+
+
+def test_label_fit_counts_the_steps_that_track_the_road_before_a_car_is_seen(capsys):
+    """`racecav train label-fit`: a driver steering 0 follows the hold labels (the tracking steer of a
+    straight ego is about 0) on the held approach; one steering 0.5 follows none, and on its own
+    approach it leaves the road (no step near the crossing). Bad arguments are refused."""
+    import math
+
+    from racecav.cli import main
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.label_fit import BANDS, label_fit
+
+    scen = str(SCENARIOS_DIR / "conflict-left-to-right.toml")
+    straight = label_fit(_Steer(0.0), scen, n=32, steps=40)
+    turning = label_fit(_Steer(0.5), scen, n=32, steps=40)
+    far, mid = BANDS[0], BANDS[1]
+    assert straight["held"][far][0] > 100 and straight["held"][far][1] > 0.9
+    assert straight["held"][mid][1] > 0.9 and straight["own"][far][1] > 0.9
+    assert turning["held"][far][0] > 100 and turning["held"][far][1] == 0.0 and turning["own"][far][1] == 0.0
+    assert turning["own"][mid][0] < straight["own"][mid][0]  # it has left the road before 3 m out
+    assert all(math.isnan(s) == (c == 0) for r in (straight, turning) for c, s in r["held"].values())
+    assert main(["train", "label-fit", "--policy", "avoid", "--scenarios", scen, "--n", "8", "--steps", "30"]) == 0
+    assert "| held |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--n and --steps must be >= 1"):
+        main(["train", "label-fit", "--scenarios", scen, "--n", "0"])
+    with pytest.raises(SystemExit, match="hold_through: cross-left is not a suite or family"):
+        main(["train", "label-fit", "--scenarios", scen, "--hold-through", "cross-left", "--n", "8"])

@@ -128,12 +128,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(p)
     add_stage_flags(p, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
-    from racecav.training import mirror, probe, seen_filter, select  # cheap modules: argument definitions only
+    from racecav.training import label_fit, mirror, probe, seen_filter, select  # cheap modules: argument definitions only
 
     select.add_subcommands(sub)
     probe.add_subcommands(sub)
     mirror.add_subcommands(sub)
     seen_filter.add_subcommands(sub)
+    label_fit.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -157,6 +158,10 @@ def run(args, cfg) -> int:
         from racecav.training.seen_filter import seen_filter
 
         return seen_filter(args, cfg)
+    if args.train_cmd == "label-fit":
+        from racecav.training.label_fit import run as label_fit
+
+        return label_fit(args, cfg)
     if args.train_cmd == "mirror":
         from racecav.training.mirror import mirror
 
