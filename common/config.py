@@ -530,6 +530,12 @@ class TrainConfig(Section):
     after the hold ends (a car has been in the ego's scan, or the ego is past the crossing's centre)
     with the teacher's own action, so that the straight labels before it cannot pull the answers
     after it (training/mirror.MirrorTeacher.anchored)."""
+    aux_seen: float = Field(0.0, ge=0)
+    """overtake with bc_coef and expert hold: weight of an auxiliary loss on the labelled steps, a
+    training-only logistic head on the actor's last hidden layer that predicts whether a car is in
+    the ego's current scan (FastWorld.seen_by_agent), so that the shared layers must encode it (0: off;
+    the shipped actor is unchanged, the head is dropped; imitation.csv's loss includes the term, the
+    head's accuracy is in the run's log)."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)

@@ -335,3 +335,43 @@ def test_the_imitation_fit_can_use_its_own_optimizer(tmp_path, crossings):
     assert [s["step"].item() for s in p.optimizer.state.values()] == steps
     assert all(torch.equal(a, b) for a, b in zip(critic, p.mlp_extractor.value_net.parameters()))
     assert not all(torch.equal(a, b) for a, b in zip(actor, p.mlp_extractor.policy_net.parameters()))
+
+
+def test_aux_seen_head_is_fitted_on_the_labelled_steps_and_not_shipped(tmp_path, crossings, capsys):
+    """``--aux-seen C`` (with --bc-coef --expert hold): each labelled step also records whether a
+    car is in the ego's scan; the held steps (no car seen yet) never are. A training-only head on
+    the actor's last layer is fitted to it; the saved policy has the same parameters as without it."""
+    from stable_baselines3 import PPO
+
+    from racecav.cli import main
+    from racecav.training.imitation_term import make_callback
+    from racecav.training.runs import load_run_config
+    from racecav.training.train import make_venv
+
+    flags = ["--preset", "fast", "--n-envs", "8", "--n-steps", "8", "--batch-size", "32", "--n-epochs", "1",
+             "--checkpoint-every", "64", "--n-obstacles", "0", "--scenarios", str(crossings),
+             "--scenario-share", "1.0", "--obs-stack", "2", "--lidar", "wide", "--bc-coef", "1",
+             "--bc-grad-steps", "2", "--expert", "hold", "--mirror-families", "left-to-right,right-to-left",
+             "--bc-label-steps", "0", "--hold-until-seen", "--anchor-seen", "--init-from", ROW16]
+    run = tmp_path / "run"
+    assert main(["train", "overtake", "--no-progress", "--run-dir", str(run), "--steps", "64",
+                 "--aux-seen", "0.5", *flags]) == 0
+    tc = load_run_config(run)[0]
+    assert tc.aux_seen == 0.5
+    venv = make_venv(tc, seed=5)
+    cb = make_callback(tmp_path, tc, venv, seed=0)
+    model = PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, device="cpu")
+    keys = set(model.policy.state_dict())
+    model.learn(256, callback=cb)
+    inview, held = cb.inview[:cb.size], cb.man[:cb.size]
+    assert held.any() and not inview[held].any()  # held: nothing in view yet
+    assert inview[~held].any()  # after the hold: the car in the scan at some steps
+    assert cb.aux_head is not None and set(model.policy.state_dict()) == keys  # not part of the policy
+    plain = tmp_path / "plain"
+    assert main(["train", "overtake", "--no-progress", "--run-dir", str(plain), "--steps", "64", *flags]) == 0
+    a = PPO.load(run / "latest.zip", device="cpu").policy.state_dict()
+    b = PPO.load(plain / "latest.zip", device="cpu").policy.state_dict()
+    assert set(a) == set(b) and all(a[k].shape == b[k].shape for k in a)
+    assert main(["train", "overtake", "--no-progress", "--run-dir", str(tmp_path / "bad"), "--steps", "64",
+                 "--scenarios", str(crossings), "--aux-seen", "0.5"]) == 2
+    assert "--aux-seen is fitted on --expert hold's labelled steps" in capsys.readouterr().out

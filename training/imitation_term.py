@@ -37,6 +37,7 @@ latch is kept at every step): row 49 collapsed within 2 M samples, as rows 15 an
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,7 @@ import numpy as np
 from racecav.training.dagger import LOSS_SCALE, STEER_TOL, action_bounds, imitation_loss, mean_action
 from racecav.training.runs import append_csv, truncate_csv
 
+log = logging.getLogger("racecav.train")
 FIELDS = ["timesteps", "labels", "loss", "steer_agree", "manoeuvres"]
 
 
@@ -71,6 +73,8 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             self.obs = np.zeros((cap, dim), np.float32)
             self.act = np.zeros((cap, 2), np.float32)
             self.man = np.zeros(cap, bool)
+            self.inview = np.zeros(cap, np.float32)  # aux_seen: a car in the scan at the labelled step
+            self.aux_head = self.aux_opt = None
             self.size = self.head = 0
             self.new = (0, 0)  # (start, count) of the newest labels: the agreement is measured on them
             self.label_at: set[int] = set()
@@ -93,10 +97,12 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             vn = self.model.get_vec_normalize_env()
             return vn.get_original_obs() if vn is not None else self.locals["new_obs"]
 
-        def _store(self, raw: np.ndarray, label: np.ndarray, man: np.ndarray) -> None:
+        def _store(self, raw: np.ndarray, label: np.ndarray, man: np.ndarray, inview=None) -> None:
             n = len(raw)
             k = np.arange(self.head, self.head + n) % len(self.obs)
             self.obs[k], self.act[k], self.man[k] = raw, label, man
+            if inview is not None:
+                self.inview[k] = inview
             self.head, self.size = (self.head + n) % len(self.obs), min(self.size + n, len(self.obs))
             self.new = (self.new[0], self.new[1] + n)
 
@@ -109,7 +115,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 label = np.clip(label, self.lo, self.hi)
                 keep = mask | self.teacher.anchored() | (self.step_in_rollout in self.label_at)
                 if keep.any():
-                    self._store(raw[keep], label[keep], mask[keep])
+                    self._store(raw[keep], label[keep], mask[keep], self._in_view(keep) if tc.aux_seen > 0 else None)
             else:
                 if tc.expert_seen:  # the latch of what has been in view follows every step
                     for e in self.experts:
@@ -122,6 +128,15 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                     self._store(self._raw_obs(), label, man)
             self.step_in_rollout += 1
             return True
+
+        def _in_view(self, keep: np.ndarray) -> np.ndarray:
+            """(keep.sum(),) 1.0 where a car returns a ray of the ego's current scan, in batch order."""
+            out = []
+            for w, sl in zip(fast.worlds, fast.slices):
+                envs = np.flatnonzero(keep[sl])
+                if envs.size:
+                    out.append(w.seen_by_agent(envs).any(axis=1))
+            return np.concatenate(out).astype(np.float32)
 
         def _fit(self) -> None:
             import torch
@@ -140,18 +155,31 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 # step along a consistent gradient, and the imitation's is far more consistent than PPO's
                 self.opt = p.optimizer if tc.bc_learning_rate is None else torch.optim.Adam(
                     [*p.mlp_extractor.policy_net.parameters(), *p.action_net.parameters()], lr=tc.bc_learning_rate)
+            if tc.aux_seen > 0 and self.aux_head is None:  # training only: never saved with the policy
+                self.aux_head = torch.nn.Linear(p.action_net.in_features, 1)
+                self.aux_opt = torch.optim.Adam(self.aux_head.parameters(), lr=1e-3)
             p.set_training_mode(True)
-            losses = []
+            losses, hits = [], []
             for _ in range(tc.bc_grad_steps):
                 j = self.rng.integers(0, self.size, tc.batch_size)
-                loss = tc.bc_coef * imitation_loss(mean_action(p, norm(self.obs[j])),
-                                                   torch.as_tensor(self.act[j]), lo, hi, scale)
+                latent = p.mlp_extractor.forward_actor(p.extract_features(torch.as_tensor(norm(self.obs[j])),
+                                                                          p.pi_features_extractor))
+                loss = tc.bc_coef * imitation_loss(p.action_net(latent), torch.as_tensor(self.act[j]), lo, hi, scale)
+                if self.aux_head is not None:
+                    logit, target = self.aux_head(latent)[:, 0], torch.as_tensor(self.inview[j])
+                    loss = loss + tc.aux_seen * torch.nn.functional.binary_cross_entropy_with_logits(logit, target)
+                    hits.append(float(((logit > 0).float() == target).float().mean()))
+                    self.aux_opt.zero_grad()
                 p.optimizer.zero_grad()
                 self.opt.zero_grad()
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(p.parameters(), tc.max_grad_norm)
                 self.opt.step()
+                if self.aux_head is not None:
+                    self.aux_opt.step()
                 losses.append(float(loss.detach()) / tc.bc_coef)
+            if hits:
+                log.info("aux_seen: head accuracy %.3f on %.0f %% in-view labels", np.mean(hits), 100 * self.inview[:self.size].mean())
             p.set_training_mode(False)
             append_csv(self.path, FIELDS, {"timesteps": self.model.num_timesteps, "labels": self.size,
                                            "loss": round(float(np.mean(losses)), 5), "steer_agree": round(agree, 4),

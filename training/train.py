@@ -49,7 +49,7 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
 IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families",
-                   "anchor_seen", "expert_horizon_s", "expert_commit_s", "expert_seen", "dataset_max")
+                   "anchor_seen", "aux_seen", "expert_horizon_s", "expert_commit_s", "expert_seen", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
@@ -403,6 +403,9 @@ def open_run(args, cfg, run_dir: Path):
     if tc.stage == "dagger" and (not tc.init_from or not tc.normalize):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
+        return None
+    if tc.aux_seen > 0 and (tc.bc_coef <= 0 or tc.expert != "hold"):
+        print("racecav train: --aux-seen is fitted on --expert hold's labelled steps; add --bc-coef C --expert hold")
         return None
     if tc.anchor_seen and (tc.bc_coef <= 0 or tc.expert != "hold"):
         print("racecav train: --anchor-seen anchors the steps after --expert hold's labels; add --bc-coef C --expert hold")
