@@ -45,13 +45,11 @@ def label_fit(policy, scenarios: str, hold_through: str = "", n: int = 256, step
     """{"held" | "own": {band: (steps, share within AGREE)}} (share NaN where a band has no step)."""
     import numpy as np
 
-    from racecav.common.config import EnvConfig
     from racecav.training.expert import latch_seen, tracking_steer
+    from racecav.training.select import policy_view_env
     from racecav.training.vec_env import FastVecEnv
 
-    md = getattr(policy, "metadata", {})
-    cfg = EnvConfig(scenarios=scenarios, scenario_share=1.0, lidar=md.get("lidar", "paper"),
-                    obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)
+    cfg = policy_view_env(policy, scenarios)
     out = {}
     for mode in ("held", "own"):
         held = mode == "held"

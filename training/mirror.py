@@ -248,15 +248,14 @@ def mirror(args, cfg) -> int:
 
     from racecav.common.bench import git_commit
     from racecav.common.config import EnvConfig
-    from racecav.training.select import eval_suite_fast, named_policy, reference_drivers, selection_cells
+    from racecav.training.select import (eval_suite_fast, named_policy, policy_view_env, reference_drivers,
+                                          selection_cells)
 
     torch.set_num_threads(1)
     if args.trials < 1 or args.suite_episodes < 1:
         raise SystemExit("racecav train mirror: --trials and --suite-episodes must be >= 1")
     policy = named_policy(args.policy)
-    md = getattr(policy, "metadata", {})
-    env = EnvConfig(scenarios=args.suite, scenario_share=1.0, lidar=md.get("lidar", "paper"),
-                    obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)
+    env = policy_view_env(policy, args.suite)
     # the imitation term's teachers as drivers: own action, mirrored once a car is near on the left in
     # a cross-left file (--mirror-seen: and in the scan); fast world only, they read the world's cars
     fams = [f.strip() for f in args.mirror_families.split(",") if f.strip()]

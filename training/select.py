@@ -146,6 +146,16 @@ def named_policy(spec: str):
     return checkpoint_policy(Path(spec)) if spec.endswith(".zip") else load_policy(spec)
 
 
+def policy_view_env(policy, scenarios: str):
+    """EnvConfig of scenario episodes only, seen as ``policy`` sees them: its metadata's view, scan
+    stack and stride and brake (a driver without metadata: the paper's view)."""
+    from racecav.common.config import EnvConfig
+
+    md = getattr(policy, "metadata", {})
+    return EnvConfig(scenarios=scenarios, scenario_share=1.0, lidar=md.get("lidar", "paper"),
+                     obs_stack=policy.obs_stack, obs_stride=policy.obs_stride, brake_below=policy.brake_below)
+
+
 def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
     """One episode in each of ``episodes`` fast worlds of the run's env (held-out seed)."""
     import numpy as np

@@ -216,13 +216,13 @@ class FastVecEnv(VecEnv):
         for w, sl, files, through in zip(self.worlds, self.slices, self._hold_file, self._through):
             if files is not None:
                 mine = files[w.scenario_index]
-                envs = np.flatnonzero(mine)
+                # held-through worlds are held whatever is in view: no scan for their latch
+                thru = np.zeros(len(mine), bool) if through is None else through[w.scenario_index]
+                envs = np.flatnonzero(mine & ~thru)
                 seen = self._seen[sl]  # a view: updated in place
                 seen[envs] = latch_seen(w, seen[envs], envs)
-                if through is not None:  # held whatever is in view
-                    seen &= ~through[w.scenario_index]
                 # every scenario's ego drives along +x to its conflict point at x = 0
-                self.held[sl] = mine & ~seen & (w.x[:, 0] < 0.0)
+                self.held[sl] = mine & (~seen | thru) & (w.x[:, 0] < 0.0)
 
     def _stacked(self) -> np.ndarray:
         """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
