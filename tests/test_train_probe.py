@@ -139,3 +139,20 @@ def test_label_fit_counts_the_steps_that_track_the_road_before_a_car_is_seen(cap
         main(["train", "label-fit", "--scenarios", scen, "--n", "0"])
     with pytest.raises(SystemExit, match="hold_through: cross-left is not a suite or family"):
         main(["train", "label-fit", "--scenarios", scen, "--hold-through", "cross-left", "--n", "8"])
+
+
+def test_probe_drives_a_policy_with_its_brake():
+    """A driver trained with a brake (brake_below) brakes in the probe's worlds as it does in its
+    training env (training/select.policy_view_env): full reverse throttle stops it short of 3 m
+    from the crossing, where the same action without a brake coasts on."""
+    import numpy as np
+
+    from racecav.common.scenario import SCENARIOS_DIR
+    from racecav.training.probe import collect
+    from racecav.training.select import ConstantAction
+
+    src = str(SCENARIOS_DIR / "left-to-right.toml")
+    coast, brake = ConstantAction(-1.0), ConstantAction(-1.0)
+    brake.brake_below = -0.5
+    assert np.isfinite(collect(coast, src, "", 16, [3.0], [0], 0)["speed"][3.0]).all()
+    assert np.isnan(collect(brake, src, "", 16, [3.0], [0], 0)["speed"][3.0]).all()

@@ -66,13 +66,12 @@ def collect(policy, source: str, family: str, n: int, distances, strides, seed: 
     the probe views (``strides``), the ego speed and yaw there, and each episode's success."""
     import numpy as np
 
-    from racecav.common.config import EnvConfig
+    from racecav.training.select import policy_view_env
     from racecav.training.vec_env import FastVecEnv
 
-    md = getattr(policy, "metadata", {})  # none: a reference driver (training/select.ConstantAction)
-    cfg = EnvConfig(scenarios=source, scenario_share=1.0, lidar=md.get("lidar", "paper"),
-                    obs_stack=policy.obs_stack, obs_stride=int(md.get("obs_stride", 1)))
-    env = FastVecEnv(n_envs=n, config=cfg, seed=seed)
+    # seen as the policy sees it (its view, stack, stride and brake); a reference driver
+    # (training/select.ConstantAction) has the paper's view
+    env = FastVecEnv(n_envs=n, config=policy_view_env(policy, source), seed=seed)
     obs = env.reset()
     names = np.concatenate([[w.scenarios[k].name for k in w.scenario_index] for w in env.worlds])
     keep = np.array([str(x).startswith(family) for x in names])
