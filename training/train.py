@@ -128,13 +128,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(p)
     add_stage_flags(p, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
-    from racecav.training import label_fit, mirror, probe, seen_filter, select  # cheap modules: argument definitions only
+    from racecav.training import average, label_fit, mirror, probe, seen_filter, select  # cheap modules: argument definitions only
 
     select.add_subcommands(sub)
     probe.add_subcommands(sub)
     mirror.add_subcommands(sub)
     seen_filter.add_subcommands(sub)
     label_fit.add_subcommands(sub)
+    average.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -162,6 +163,10 @@ def run(args, cfg) -> int:
         from racecav.training.label_fit import run as label_fit
 
         return label_fit(args, cfg)
+    if args.train_cmd == "average":
+        from racecav.training.average import run as average
+
+        return average(args, cfg)
     if args.train_cmd == "mirror":
         from racecav.training.mirror import mirror
 
