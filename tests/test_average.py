@@ -44,7 +44,7 @@ def _fake_run(tmp_path: Path, n: int) -> tuple[Path, list[dict], list]:
     return run, states, means
 
 
-def test_average_writes_the_window_means_that_select_can_load(tmp_path):
+def test_average_writes_the_window_means_that_select_can_load(tmp_path, monkeypatch):
     from stable_baselines3 import PPO
 
     from racecav.common.policy import NumpyPolicy, policy_arrays_from_sb3
@@ -75,6 +75,11 @@ def test_average_writes_the_window_means_that_select_can_load(tmp_path):
     raw = NumpyPolicy(policy_arrays_from_sb3(model), {})
     want = np.clip(mean_action(model.policy, torch.as_tensor(obs)).detach().numpy(), -1, 1)
     np.testing.assert_allclose(np.stack([raw(o) for o in obs]), want, atol=1e-5)
+    # select's record of the folder keeps what the averages are (the ablation's change column)
+    from racecav.training import select
+
+    monkeypatch.setattr(select, "COMMITTED", tmp_path / "committed")
+    assert json.loads((select.save_run_record(out) / "averaged.json").read_text()) == rec
     # a window of one is the run itself
     one = average_run(run, 1, tmp_path / "one", progress=False)
     assert len(one) == 4
