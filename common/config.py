@@ -210,6 +210,12 @@ class SimConfig(Section):
     periods: one late scan must not brake the car, a dead controller must."""
     lockstep_timeout_s: float = Field(2.0, gt=0)
     """Lockstep: republish the scan if no answer came within this (wall) time; keep waiting."""
+    lockstep_compute_ms: float | None = Field(None, ge=0, lt=1000)
+    """Lockstep: charge every answer this compute time instead of the ``compute_ns`` it reports
+    (None: the reported one). A measured compute time jitters by microseconds from run to run, so
+    a controller that measures its own (MPC-APF, the policy service) never repeats a lockstep run
+    to the bit; with a fixed charge it does, at the cost of the latency the mode exists to charge
+    (``RACECAV_SIM__LOCKSTEP_COMPUTE_MS=10 racecav eval ...``; the runs' sim_counters record it)."""
     wait_for_controller: bool = True
     """Realtime: an episode's clock starts when the first command after its reset arrives (its
     first scan is republished every 0.5 s until then), so a trial never starts uncontrolled."""

@@ -110,6 +110,8 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
         info = harness.status_info()
         sim_counters = {k: info[k] for k in ("lockstep_republish", "stale_commands", "watchdog_brakes", "overruns",
                                              "episode", "safety_brakes", "safety_verdict_timeouts") if k in info}
+        if info.get("lockstep_compute_ms") is not None:  # a fixed charge (SimConfig.lockstep_compute_ms)
+            sim_counters["lockstep_compute_ms"] = info["lockstep_compute_ms"]
         ctrl_counters = harness.controller_status().info
         if getattr(harness, "safety", False):  # the supervisor's brakes and false-brake candidates
             from racecav.common.client import get_status

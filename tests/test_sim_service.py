@@ -86,12 +86,17 @@ def test_scripted_controller_drives_the_sim_car(spawn, session, tmp_path):
     states.sub.undeclare()
 
 
-def _lockstep_run(spawn, session, seed: int) -> list[tuple]:
-    sim = spawn("sim", "--scenario", "right-to-left", "--mode", "lockstep", "--seed", str(seed))
+def _lockstep_run(spawn, session, seed: int, charge_ms: str | None = None) -> list[tuple]:
+    """The scripted controller reports 13 ms of compute; ``charge_ms``: the sim charges that
+    instead (SimConfig.lockstep_compute_ms) and the controller reports its measured time."""
+    env = None if charge_ms is None else {"RACECAV_SIM__LOCKSTEP_COMPUTE_MS": charge_ms}
+    sim = spawn("sim", "--scenario", "right-to-left", "--mode", "lockstep", "--seed", str(seed), env=env)
     procs.wait_alive(session, "car0", "sim", proc=sim)
     states = States(session)
-    ctl = spawn("scripted", "--program", "0.3,0.2,8;0.5,-0.3,8;0.2,0.0,100", "--compute-ms", "13")
+    reported = ["--compute-ms", "13"] if charge_ms is None else []
+    ctl = spawn("scripted", "--program", "0.3,0.2,8;0.5,-0.3,8;0.2,0.0,100", *reported)
     items = states.wait(lambda s: any(x.collided for x in s) or len(s) >= 50, timeout=60)
+    assert get_status(session, "car0", "sim").info["lockstep_compute_ms"] == (None if charge_ms is None else float(charge_ms))
     procs.stop(ctl)
     procs.stop(sim)
     states.sub.undeclare()
@@ -106,6 +111,15 @@ def test_lockstep_runs_are_reproducible(spawn, session):
     assert a == b
     # stamps are sim time: one control period apart
     assert a[5][1] - a[4][1] == 100_000_000
+
+
+def test_a_fixed_lockstep_charge_repeats_a_measuring_controller(spawn, session):
+    """A controller that reports its measured compute time (jittering by microseconds) repeats to
+    the bit under a fixed charge, and a charge of 13 ms is what a controller reporting 13 ms gets."""
+    reported = _lockstep_run(spawn, session, seed=3)
+    a = _lockstep_run(spawn, session, seed=3, charge_ms="13")
+    b = _lockstep_run(spawn, session, seed=3, charge_ms="13")
+    assert len(a) >= 20 and a == b == reported
 
 
 def test_reset_and_scenario_queryables(spawn, session, tmp_path):

@@ -12,7 +12,8 @@ Two modes (config section ``sim``):
 - lockstep: after publishing scan k the world waits for the command answering it
   (``scan_seq == k``); that command applies ``compute_ns`` into the next control period (the
   controller's measured compute latency: a slow controller still pays for its slowness). Same
-  seed, same commands => same trajectory.
+  seed, same commands => same trajectory (``lockstep_compute_ms``: a fixed charge instead, for
+  runs that repeat to the bit whatever the controller measures).
 
 Inputs are arbitrated by the actuator's own mux (:class:`CommandMux`, actuator section: e-stop
 latch > safety brake > teleop > ROS drive > controller, each with its timeout), so the sim and
@@ -287,7 +288,8 @@ class SimService(Service):
         if len(self._rtf_window) >= 2:
             (a, sa), (b, sb) = self._rtf_window[0], self._rtf_window[-1]
             rtf = (sb - sa) / (b - a) if b > a else None
-        self._info = {"mode": self.scfg.mode, "scenario": w.scenario.name, "world": w.world.name,
+        self._info = {"mode": self.scfg.mode, "lockstep_compute_ms": self.scfg.lockstep_compute_ms,
+                      "scenario": w.scenario.name, "world": w.world.name,
                       "heading": w.heading, "seed": self.seed, "episode": self.episode, "t": w.t,
                       "steps": w.steps, "done": self.done, "collided": w.collided,
                       "contact_with": w.contact_with, "progress_m": float(w.progress()[0]),
@@ -477,7 +479,10 @@ class SimService(Service):
         def when(msg: DriveCommand, _arrival: int) -> float:
             # an answer to this scan counts from the scan plus its compute time; other inputs
             # (teleop, ROS) from the start of this period
-            return t_k + msg.compute_ns * 1e-9 if msg.scan_seq == want else t_k
+            if msg.scan_seq != want:
+                return t_k
+            fixed = self.scfg.lockstep_compute_ms
+            return t_k + (msg.compute_ns * 1e-9 if fixed is None else fixed * 1e-3)
 
         # the controller's input is its answer to this scan (taken above), not the newest sample
         new = [(when(cmd, 0), keys.CMD, cmd)]
