@@ -26,7 +26,7 @@ def add_subcommands(sub) -> None:
                        "-> a run folder that `train select` evaluates like the run")
     p.add_argument("--run-dir", type=Path, required=True, help="the run whose checkpoints/step_N.zip are averaged")
     p.add_argument("--window", type=int, default=4, help="checkpoints per average (the newest and the ones before it)")
-    p.add_argument("--out", type=Path, help="output run folder (default: runs/<run>-avg<window>)")
+    p.add_argument("--out", type=Path, help="output run folder (default: <run>-avg<window> beside the run)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
     p.set_defaults(stage="average")
 
@@ -128,9 +128,7 @@ def average_run(run_dir: Path, window: int, out: Path, progress: bool = True) ->
 
 
 def run(args, cfg) -> int:
-    from racecav.training.train import RUNS_DIR
-
-    out = args.out or RUNS_DIR / f"{args.run_dir.name}-avg{args.window}"
+    out = args.out or args.run_dir.parent / f"{args.run_dir.name}-avg{args.window}"
     try:
         written = average_run(args.run_dir, args.window, out, progress=not args.no_progress)
     except (ValueError, FileNotFoundError) as e:
