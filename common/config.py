@@ -511,14 +511,17 @@ class TrainConfig(Section):
     """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
     touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
     scores better; training/expert.Expert)."""
-    expert: Literal["planner", "mirror", "track", "hold"] = "planner"
+    expert: Literal["planner", "mirror", "track", "hold", "stop"] = "planner"
     """dagger, and overtake with bc_coef: the teacher. planner: the privileged planner
     (training/expert.py); mirror: the ``init_from`` policy itself, its action on the mirrored scan
     in the ``mirror_families`` scenarios and its own action elsewhere (training/mirror.py; with
     bc_coef the mirrored steps and the anchors are labelled, training/imitation_term.py); track:
     as mirror, with plain tracking of the ego's road at full throttle instead of the mirrored action;
     hold: plain tracking at full throttle in the ``mirror_families`` scenarios until a car has been in
-    the ego's scan in the episode (whatever its side), the policy's own action elsewhere."""
+    the ego's scan in the episode (whatever its side), the policy's own action elsewhere; stop: stop
+    and look in the ``mirror_families`` scenarios (brake before the crossing, wait while a car in the
+    ego's scan is in it or closing on it, then go straight; needs env.brake_below;
+    training/mirror.MirrorTeacher), the policy's own action elsewhere."""
     mirror_families: str = "cross-left"
     """dagger or bc_coef with expert mirror, track or hold: the scenario families (comma-separated; a
     family of every suite, cross-left, or of one, paper-timed/cross-left) whose steps with a car

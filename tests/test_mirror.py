@@ -375,3 +375,60 @@ def test_aux_seen_head_is_fitted_on_the_labelled_steps_and_not_shipped(tmp_path,
     assert main(["train", "overtake", "--no-progress", "--run-dir", str(tmp_path / "bad"), "--steps", "64",
                  "--scenarios", str(crossings), "--aux-seen", "0.5"]) == 2
     assert "--aux-seen is fitted on --expert hold's labelled steps" in capsys.readouterr().out
+
+
+def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
+    """--expert stop: driven by its own labels, the stop-and-look teacher passes the paper's
+    crossings from either side in both timings (fast world), where a straight ego at full throttle
+    loses the conflict-timed ones; it brakes before the crossing, steers the road's tracking steer
+    and labels only the named families short of the crossing; it needs the run's brake."""
+    from racecav.training.expert import tracking_steer
+
+    folder = tmp_path / "sides"
+    folder.mkdir()
+    names = ["left-to-right", "conflict-left-to-right", "right-to-left", "conflict-right-to-left"]
+    for name in names:
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", folder / f"{name}.toml")
+    policy = load_policy("avoid")
+
+    def env_of(brake):
+        return FastVecEnv(config=EnvConfig(n_envs=64, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
+                                           lidar="wide", obs_stack=2, brake_below=brake), seed=5)
+
+    with pytest.raises(ValueError, match="brake-below"):
+        MirrorTeacher(policy, env_of(None), names, relabel="stop")
+
+    def drive(env, teacher=None, labelled=()):
+        (world,) = env.worlds
+        env.reset()
+        fam0 = np.array(world.scenario_families)[world.scenario_index]
+        done, ok, braked = np.zeros(env.num_envs, bool), np.zeros(env.num_envs, bool), np.zeros(env.num_envs, bool)
+        while not done.all():
+            raw = env._stacked()
+            if teacher is None:
+                act = np.tile(np.array([1.0, 0.0], np.float32), (env.num_envs, 1))
+            else:
+                act, mask = teacher.labels(raw)
+                fam = np.array(world.scenario_families)[world.scenario_index]
+                mine = np.isin(fam, labelled)  # only the labelled families
+                assert np.array_equal(mask, mine & (world.x[:, 0] < 0.0))
+                assert np.allclose(act[mask, 1], tracking_steer(world)[mask])
+                braked |= mask & (act[:, 0] < -0.5) & ~done
+            _obs, _r, d, infos = env.step(act.astype(np.float32))
+            for i in np.flatnonzero(d & ~done):
+                ok[i] = infos[i].get("is_success", False)
+            done |= d
+        env.close()
+        return fam0, ok, braked
+
+    fam, ok, braked = drive(env_of(-0.5), None)
+    assert not ok[np.char.startswith(fam.astype(str), "conflict")].any()  # the straight pass loses these
+    env = env_of(-0.5)
+    fam, ok, braked = drive(env, MirrorTeacher(policy, env, names[:2], relabel="stop"), names[:2])
+    left = np.isin(fam, names[:2])
+    assert ok[left].all() and braked[left].all()  # every labelled world stops, and passes
+    assert not braked[~left].any()  # the others drive the policy's own action (it has no brake)
+    # the same teacher on the right-hand side: it is side-neutral
+    env = env_of(-0.5)
+    fam, ok, _braked = drive(env, MirrorTeacher(policy, env, names, relabel="stop"), names)
+    assert ok.all(), {f: ok[fam == f].mean() for f in names}

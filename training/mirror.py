@@ -45,9 +45,13 @@ def mirror_action(action: np.ndarray) -> np.ndarray:
     return out
 
 
-RELABELS = ("mirror", "track", "hold")  # the --expert teachers that are the init_from policy, relabelled
+RELABELS = ("mirror", "track", "hold", "stop")  # the --expert teachers that are the init_from policy, relabelled
 NEAR_M = 5.0   # m: an actor this close (about where the crossings' cars come into view) ...
 LEFT_M = 0.3   # m: ... and this far to the ego's left makes the scene a mirrored one
+# --expert stop (stop and look): brake from STOP_M before the conflict point to below HALT_V, then
+# wait while a car in the ego's scan is within BOX_M of the conflict point or within APPROACH_M
+# and closing on it. The values of the fast-world probe in docs/training.md (rows 78-79).
+STOP_M, HALT_V, BOX_M, APPROACH_M = 2.5, 0.15, 0.8, 3.5
 
 
 class MirrorTeacher:
@@ -70,6 +74,14 @@ class MirrorTeacher:
         can see the car, and that turn decides the crossings from the left; before a car is seen
         the scans of the two timings and of the two sides are the same, so one label fits all.
         Rows 52-53 of docs/training.md: fitting it moves the answers after the car is seen too.
+        stop: stop and look, side-neutral (``--expert stop``, with a brake): on every step of a
+        ``families`` scenario short of the crossing's centre, full throttle along the road until
+        STOP_M before the conflict point, then the brake until the ego is below HALT_V, then the
+        brake again while a car *in the ego's scan* is in the crossing or closing on it, then full
+        throttle (the road's tracking steer throughout). Why: the crossing car of either timing
+        and either side passes first (a synchronised one slows to its 0.5 m/s floor and goes by),
+        so no turn begun before the car is in view is needed; it reads the cars only where the
+        scan shows them, so a policy can learn it.
     :param anchor_seen: relabel hold: :meth:`anchored` also returns every step of a ``families``
         scenario after its hold ended (a car seen, or the ego past the crossing's centre), whose
         label is the policy's own action: the answers after the car is in view are held where they
@@ -86,6 +98,8 @@ class MirrorTeacher:
             raise ValueError("--expert hold labels the steps before a car is seen: --mirror-seen contradicts it")
         if anchor_seen and relabel != "hold":
             raise ValueError("--anchor-seen anchors the steps after --expert hold's labels: use it with --expert hold")
+        if relabel == "stop" and fast_env.settings.brake_below is None:
+            raise ValueError("--expert stop brakes: set --brake-below (the run's policy needs a brake)")
         self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel
         self.anchor_seen = anchor_seen
         qualified = {f for w in fast_env.worlds if w.actors is not None for f in w.scenario_families}
@@ -100,6 +114,9 @@ class MirrorTeacher:
         self._anchored = self._per_file(set(anchor_families))
         self._seen = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]  # hold: latched per episode
         self._held = np.zeros(fast_env.num_envs, bool)  # hold: the newest mirrored() mask
+        # stop: per world, latched per episode: the ego has come down to HALT_V / has been let go
+        self._halted = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
+        self._go = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
 
     def _per_file(self, names: set[str]) -> list[np.ndarray | None]:
         # a name matches its family in every suite (cross-left) or in one (paper-timed/cross-left)
@@ -146,6 +163,35 @@ class MirrorTeacher:
             out.append(~seen & m[w.scenario_index] & (w.x[:, 0] < 0.0))
         return np.concatenate(out)
 
+    def _stop_and_look(self) -> tuple[np.ndarray, np.ndarray]:
+        """(labelled (N,), throttle label (N,)), relabel stop: the worlds of ``families`` whose ego
+        is short of the crossing's centre, and the stop-and-look throttle there (+1 go, -1 brake).
+        Call it at every step: the latches follow each world's episode."""
+        lab, thr = [], []
+        for k, (w, m) in enumerate(zip(self.fast.worlds, self._mirrored)):
+            if m is None:
+                lab.append(np.zeros(w.n_envs, bool))
+                thr.append(np.ones(w.n_envs))
+                continue
+            new = w.time < 1e-9  # a new episode: nothing latched
+            halted, go = self._halted[k], self._go[k]
+            halted[new] = go[new] = False
+            x, v = w.x[:, 0], w.v[:, 0]
+            near = x >= -STOP_M
+            halted |= near & (v < HALT_V)
+            look = np.flatnonzero(halted & ~go & m[w.scenario_index])
+            if look.size:
+                dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
+                d = np.hypot(dx, dy)
+                closing = dx * np.cos(w.yaw[look, 1:]) + dy * np.sin(w.yaw[look, 1:]) < 0.0
+                busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > 0.05))
+                busy &= w.seen_by_agent(look)
+                go[look[~busy.any(axis=1)]] = True
+            go |= x >= 0.0
+            lab.append(m[w.scenario_index] & (x < 0.0))
+            thr.append(np.where(~near | go, 1.0, -1.0))
+        return np.concatenate(lab), np.concatenate(thr)
+
     def mirrored(self) -> np.ndarray:
         """(N,) bool: the worlds whose current episode is a scenario of a mirrored family and
         whose ego has an actor on its left within ``NEAR_M``. Before that the scene is about
@@ -154,6 +200,9 @@ class MirrorTeacher:
         worlds of those families where no car has been seen yet (:meth:`_unseen`)."""
         if self.relabel == "hold":
             self._held = self._unseen()
+            return self._held
+        if self.relabel == "stop":
+            self._held, self._stop_throttle = self._stop_and_look()
             return self._held
         return self._near(self._mirrored, +1.0)
 
@@ -172,7 +221,8 @@ class MirrorTeacher:
     def labels(self, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(labels (N, 2), relabelled (N,)) for the raw (not normalised) stacked scans ``raw_obs``:
         on the :meth:`mirrored` steps the mirrored action (relabel mirror) or plain tracking of
-        the ego's road at full throttle (relabel track or hold, training/expert.tracking_steer)."""
+        the ego's road at full throttle (relabel track or hold, training/expert.tracking_steer),
+        or with the stop-and-look throttle (relabel stop)."""
         mask = self.mirrored()
         out = self.policy(raw_obs).copy()
         if mask.any() and self.relabel == "mirror":
@@ -183,7 +233,8 @@ class MirrorTeacher:
 
             steer = np.concatenate([tracking_steer(w) if w.actors is not None else np.zeros(w.n_envs)
                                     for w in self.fast.worlds])
-            out[mask] = np.stack([np.ones(int(mask.sum())), steer[mask]], axis=1)
+            throttle = self._stop_throttle[mask] if self.relabel == "stop" else np.ones(int(mask.sum()))
+            out[mask] = np.stack([throttle, steer[mask]], axis=1)
         return out, mask
 
 
