@@ -128,7 +128,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(p)
     add_stage_flags(p, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
-    from racecav.training import average, label_fit, mirror, probe, seen_filter, select  # cheap modules: argument definitions only
+    from racecav.training import average, label_fit, mirror, probe, seen_filter, select, stop_probe  # cheap modules: argument definitions only
 
     select.add_subcommands(sub)
     probe.add_subcommands(sub)
@@ -136,6 +136,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     seen_filter.add_subcommands(sub)
     label_fit.add_subcommands(sub)
     average.add_subcommands(sub)
+    stop_probe.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -163,6 +164,10 @@ def run(args, cfg) -> int:
         from racecav.training.label_fit import run as label_fit
 
         return label_fit(args, cfg)
+    if args.train_cmd == "stop-probe":
+        from racecav.training.stop_probe import run as stop_probe
+
+        return stop_probe(args, cfg)
     if args.train_cmd == "average":
         from racecav.training.average import run as average
 

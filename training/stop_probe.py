@@ -1,0 +1,75 @@
+"""``racecav train stop-probe``: what the stop-and-look teacher (``--expert stop``) passes, driven
+by its own labels in the fast world, beside the straight car at full throttle on the same seeds.
+
+Every world drives one episode of the scenario files (selection seed); the teacher's families are
+driven by its labels (training/mirror.MirrorTeacher, relabel stop: brake before the crossing,
+wait while a car in the ego's scan is in it or closing on it, then straight on), every other
+family straight at full throttle. It answers whether a manoeuvre that needs no turn before the car
+is in view passes both timings of a family, before a policy is trained to it.
+"""
+
+from __future__ import annotations
+
+
+def add_subcommands(sub) -> None:
+    p = sub.add_parser("stop-probe", help="success of the stop-and-look teacher (--expert stop) driven by its own "
+                       "labels in the fast world, per family, beside a straight car at full throttle")
+    p.add_argument("--scenarios", required=True, help="suite NAME (train split), folder or scenario files")
+    p.add_argument("--families", default="cross-left,cross-right", help="the families the teacher drives "
+                   "(as --mirror-families); the others drive straight at full throttle")
+    p.add_argument("--n", type=int, default=1024, help="fast worlds (one episode each)")
+    p.add_argument("--seed", type=int, help="default: select's selection seed")
+    p.set_defaults(stage="stop-probe")
+
+
+def stop_probe(scenarios: str, families: list[str], n: int, seed: int) -> dict[str, tuple[int, float, float]]:
+    """{family: (episodes, teacher's success, straight full-throttle success)} on the same seeds."""
+    import numpy as np
+
+    from racecav.common.config import EnvConfig
+    from racecav.training.mirror import MirrorTeacher
+    from racecav.training.select import ConstantAction
+    from racecav.training.vec_env import FastVecEnv
+
+    straight = ConstantAction(1.0)
+    cfg = EnvConfig(scenarios=scenarios, scenario_share=1.0, lidar="wide", obs_stack=1, brake_below=-0.5)
+    out = {}
+    for driver in ("teacher", "straight"):
+        env = FastVecEnv(n_envs=n, config=cfg, seed=seed)
+        obs = env.reset()
+        teacher = MirrorTeacher(straight, env, families, relabel="stop") if driver == "teacher" else None
+        fam = np.concatenate([np.array(w.scenario_families)[w.scenario_index] if w.actors is not None
+                              else np.full(w.n_envs, "traffic") for w in env.worlds])
+        done, ok = np.zeros(n, bool), np.zeros(n, bool)
+        while not done.all():
+            act = teacher.labels(obs)[0] if teacher else straight(obs)
+            obs, _r, d, infos = env.step(act.astype(np.float32))
+            for i in np.flatnonzero(d & ~done):
+                ok[i] = infos[i].get("is_success", False)
+            done |= d
+        env.close()
+        for f in sorted(set(fam.tolist())):
+            m = fam == f
+            prev = out.get(f, (int(m.sum()), float("nan"), float("nan")))
+            out[f] = (prev[0], float(ok[m].mean()), prev[2]) if driver == "teacher" else (prev[0], prev[1], float(ok[m].mean()))
+    return out
+
+
+def run(args, cfg) -> int:
+    import torch
+
+    from racecav.training.select import SELECT_SEED
+
+    torch.set_num_threads(1)
+    if args.n < 1:
+        raise SystemExit("racecav train stop-probe: --n must be >= 1")
+    families = [f.strip() for f in args.families.split(",") if f.strip()]
+    try:
+        res = stop_probe(args.scenarios, families, args.n, SELECT_SEED if args.seed is None else args.seed)
+    except (ValueError, FileNotFoundError) as e:  # the teacher names its training flag
+        raise SystemExit(f"racecav train stop-probe: {str(e).replace('--mirror-families', '--families')}") from None
+    print(f"stop-and-look teacher on {args.scenarios} (it drives {', '.join(families)}; the rest straight at full throttle)")
+    print("| family | episodes | stop and look | straight, full throttle |\n|---|---:|---:|---:|")
+    for f, (k, s, r) in res.items():
+        print(f"| {f} | {k} | {100 * s:.0f} % | {100 * r:.0f} % |")
+    return 0
