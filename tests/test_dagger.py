@@ -59,6 +59,18 @@ def test_imitation_loss_ignores_what_the_actuation_clips():
     assert abs(float(imitation_loss(short, label, lo, hi, scale)) - 0.01) < 1e-6
     mid = torch.tensor([[0.5, 0.0]])
     assert abs(float(imitation_loss(mid + 0.2, mid, lo, hi, scale)) - 0.04) < 1e-6
+    # with a brake (a_T < brake_below brakes) the throttle's bound is the action space's -1: a brake
+    # label keeps its value and a coasting prediction is charged for it (it would coast, not brake)
+    from racecav.common.vehicle import brake_from_action
+
+    car = load_car("slash")
+    blo, bhi = action_bounds(car, brake_below=-0.5)
+    assert blo[0] == -1.0 and bhi[0] == 1.0 and blo[1] == lo[1]
+    brake = torch.tensor([[float(np.clip(-1.0, blo[0], bhi[0])), 0.0]])
+    assert brake_from_action(float(brake[0, 0]), -0.5)
+    blo_t, bhi_t = torch.as_tensor(blo), torch.as_tensor(bhi)
+    assert float(imitation_loss(torch.tensor([[0.0, 0.0]]), brake, blo_t, bhi_t, scale)) == pytest.approx(0.5)
+    assert float(imitation_loss(torch.tensor([[-1.3, 0.0]]), brake, blo_t, bhi_t, scale)) == 0.0
 
 
 def test_dagger_run_resumes_and_the_selection_loads_its_checkpoints(tmp_path, capsys):

@@ -46,10 +46,12 @@ STEER_TOL = 0.05  # rad: "agrees with the planner" in progress.csv
 LOSS_SCALE = (0.5, 0.15)  # throttle, steering: the loss counts steering errors of 0.15 like 0.5 of throttle
 
 
-def action_bounds(car) -> tuple[np.ndarray, np.ndarray]:
+def action_bounds(car, brake_below: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) of the actions that still change the car's command: a_T beyond [0, 1] and a_delta
-    beyond the steering range are clipped by the actuation (common/vehicle.py)."""
-    return (np.array([0.0, car.delta_min / car.steer_gain], np.float32),
+    beyond the steering range are clipped by the actuation (common/vehicle.py). With a brake
+    (``brake_below``) a_T below 0 still matters (below brake_below the car brakes): a_T's bound is
+    then -1, the action space's, or a brake label would be clipped to a coast."""
+    return (np.array([0.0 if brake_below is None else -1.0, car.delta_min / car.steer_gain], np.float32),
             np.array([1.0, car.delta_max / car.steer_gain], np.float32))
 
 
@@ -120,7 +122,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
     tied = getattr(policy, "tied", None)  # a mirror-symmetric actor stays tied (training/symmetric.py)
     scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
-    lo, hi = action_bounds(fast.world.car)
+    lo, hi = action_bounds(fast.world.car, tc.env.brake_below)
     lo_t, hi_t = torch.as_tensor(lo), torch.as_tensor(hi)
     rng = np.random.default_rng(tc.seed + state["timesteps"])
     n, dim = fast.num_envs, fast.observation_space.shape[0]

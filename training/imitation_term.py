@@ -67,7 +67,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                                                      seen_only=tc.expert_seen)
                                               for w in fast.worlds]
             self.car = fast.world.car
-            self.lo, self.hi = action_bounds(self.car)
+            self.lo, self.hi = action_bounds(self.car, tc.env.brake_below)
             self.rng = np.random.default_rng(seed)
             dim, cap = fast.observation_space.shape[0], tc.dataset_max
             self.obs = np.zeros((cap, dim), np.float32)
