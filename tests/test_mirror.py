@@ -413,6 +413,7 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
                 mine = np.isin(fam, labelled)  # only the labelled families
                 assert np.array_equal(mask, mine & (world.x[:, 0] < 0.0))
                 assert np.allclose(act[mask, 1], tracking_steer(world)[mask])
+                assert np.array_equal(act[~mask], policy(raw)[~mask])  # elsewhere the policy's own action
                 braked |= mask & (act[:, 0] < -0.5) & ~done
             _obs, _r, d, infos = env.step(act.astype(np.float32))
             for i in np.flatnonzero(d & ~done):
@@ -427,7 +428,6 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
     fam, ok, braked = drive(env, MirrorTeacher(policy, env, names[:2], relabel="stop"), names[:2])
     left = np.isin(fam, names[:2])
     assert ok[left].all() and braked[left].all()  # every labelled world stops, and passes
-    assert not braked[~left].any()  # the others drive the policy's own action (it has no brake)
     # the same teacher on the right-hand side: it is side-neutral
     env = env_of(-0.5)
     fam, ok, _braked = drive(env, MirrorTeacher(policy, env, names, relabel="stop"), names)
