@@ -435,18 +435,19 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
 
 
 def test_stop_probe_reports_the_teacher_beside_the_straight_car(capsys):
-    """`racecav train stop-probe`: per family, the stop-and-look teacher where it drives and the
-    straight car at full throttle on the same seeds; a family it does not drive is straight in both."""
+    """`racecav train stop-probe`: per family, the stop-and-look teacher where it drives, beside the
+    non-evading references on the same seeds; a family it does not drive goes straight at full throttle."""
     import re
 
     from racecav.cli import main
 
     files = ",".join(str(SCENARIOS_DIR / f"{n}.toml") for n in ("conflict-left-to-right", "left-to-right"))
     assert main(["train", "stop-probe", "--scenarios", files, "--families", "conflict-left-to-right", "--n", "64"]) == 0
-    rows = {m[0]: (int(m[1]), int(m[2]), int(m[3])) for m in
-            re.findall(r"^\| ([\w-]+) \| (\d+) \| (\d+) % \| (\d+) % \|$", capsys.readouterr().out, re.M)}
-    assert rows["conflict-left-to-right"][1:] == (100, 0)  # stops for the synchronised car; straight loses it
-    assert rows["left-to-right"][1:] == (100, 100)  # not driven by the teacher: straight in both columns
-    assert sum(k for k, _, _ in rows.values()) == 64
+    rows = {m[0]: (int(m[1]), int(m[2]), int(m[3]), int(m[4])) for m in
+            re.findall(r"^\| ([\w-]+) \| (\d+) \| (\d+) % \| (\d+) % \| (\d+) % \|$", capsys.readouterr().out, re.M)}
+    # columns: stop and look, straight at 1 m/s, straight at full throttle (the references)
+    assert rows["conflict-left-to-right"][1:] == (100, 0, 0)  # stops for the synchronised car; no straight car passes
+    assert rows["left-to-right"][1:] == (100, 0, 100)  # not driven by the teacher: it is the full-throttle car there
+    assert sum(r[0] for r in rows.values()) == 64
     with pytest.raises(SystemExit, match="--families"):
         main(["train", "stop-probe", "--scenarios", files, "--families", "nope", "--n", "8"])

@@ -14,11 +14,8 @@ Averages are only meaningful along one run (checkpoints of the same lineage and 
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 from pathlib import Path
-
-log = logging.getLogger("racecav.train")
 
 
 def add_subcommands(sub) -> None:

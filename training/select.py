@@ -1857,8 +1857,8 @@ def _ablation_markdown() -> str:
           "full throttle on its road until 2.5 m before the conflict point, the brake until below 0.15 m/s, the brake "
           "again while a car in the ego's scan is within 0.8 m of the conflict point or within 3.5 m and closing on it, "
           "then straight on at full throttle; it reads the cars only where its scan shows them) by its own labels in "
-          "the fast world, beside a straight car at full throttle on the same seeds (the selection seed; the families it "
-          "does not drive go straight at full throttle): the table below. It passes both timings of the paper's "
+          "the fast world, beside the non-evading references (straight at 1 m/s and at full throttle) on the same seeds "
+          "(the selection seed; the families it does not drive go straight at full throttle): the table below. It passes both timings of the paper's "
           "crossings from either side, where the straight car loses every conflict-timed one, and 94 / 91 % of the "
           "suite's crossings from the left / right (row 31: 61-75 % of those from the left over its checkpoints); it "
           "does not answer a head-on, a stopped or a braking car (the steering evasion's families), passes a quarter of "
@@ -1894,21 +1894,21 @@ def _ablation_markdown() -> str:
           "common/data/scenarios/conflict-head-to-head.toml --families left-to-right,conflict-left-to-right,"
           "right-to-left,conflict-right-to-left --n 512`, then `--scenarios conflicts --families "
           "cross-left,cross-right,staggered,turning` and `--scenarios paper-timed` (1024 worlds each):", "",
-          "| scenario or family | episodes | stop and look | straight, full throttle |",
-          "|---|---:|---:|---:|",
-          "| right-to-left (paper) | 84 | 100 % | 100 % |",
-          "| head-to-head (paper; not driven) | 89 | 0 % | 0 % |",
-          "| left-to-right (paper) | 94 | 100 % | 100 % |",
-          "| conflict-right-to-left | 87 | 100 % | 0 % |",
-          "| conflict-head-to-head (not driven) | 75 | 7 % | 7 % |",
-          "| conflict-left-to-right | 83 | 100 % | 0 % |",
-          "| conflicts/cross-left | 140 | 94 % | 1 % |",
-          "| conflicts/cross-right | 128 | 91 % | 0 % |",
-          "| conflicts/staggered | 134 | 24 % | 1 % |",
-          "| conflicts/turning | 165 | 38 % | 1 % |",
-          "| conflicts/braking, head-on, stopped (not driven) | 164, 152, 141 | 0 % | 0 % |",
-          "| paper-timed/cross-left | 357 | 89 % | 100 % |",
-          "| paper-timed/cross-right | 326 | 83 % | 100 % |", "",
+          "| scenario or family | episodes | stop and look | straight 1 m/s | straight, full throttle |",
+          "|---|---:|---:|---:|---:|",
+          "| right-to-left (paper) | 84 | 100 % | 0 % | 100 % |",
+          "| head-to-head (paper; not driven) | 89 | 0 % | 0 % | 0 % |",
+          "| left-to-right (paper) | 94 | 100 % | 0 % | 100 % |",
+          "| conflict-right-to-left | 87 | 100 % | 0 % | 0 % |",
+          "| conflict-head-to-head (not driven) | 75 | 7 % | 7 % | 7 % |",
+          "| conflict-left-to-right | 83 | 100 % | 0 % | 0 % |",
+          "| conflicts/cross-left | 140 | 94 % | 0 % | 1 % |",
+          "| conflicts/cross-right | 128 | 91 % | 0 % | 0 % |",
+          "| conflicts/staggered | 134 | 24 % | 0 % | 1 % |",
+          "| conflicts/turning | 165 | 38 % | 0 % | 1 % |",
+          "| conflicts/braking, head-on, stopped (not driven) | 164, 152, 141 | 0 % | 1, 0, 0 % | 0 % |",
+          "| paper-timed/cross-left | 357 | 89 % | 3 % | 100 % |",
+          "| paper-timed/cross-right | 326 | 83 % | 2 % | 100 % |", "",
           "| policy (free intersection, open suite) | held: x < -3 m | -3 to -2 m | -2 to 0 m | own: x < -3 m | -3 to -2 m | -2 to 0 m |",
           "|---|---:|---:|---:|---:|---:|---:|",
           "| row 31 at 5 M (the shipped avoid) | 6 % | 2 % | 7 % | 6 % | 2 % | 4 % |",

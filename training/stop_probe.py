@@ -1,5 +1,6 @@
 """``racecav train stop-probe``: what the stop-and-look teacher (``--expert stop``) passes, driven
-by its own labels in the fast world, beside the straight car at full throttle on the same seeds.
+by its own labels in the fast world, beside the non-evading references (straight at 1 m/s and at
+full throttle) on the same seeds.
 
 Every world drives one episode of the scenario files (selection seed); the teacher's families are
 driven by its labels (training/mirror.MirrorTeacher, relabel stop: brake before the crossing,
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 def add_subcommands(sub) -> None:
     p = sub.add_parser("stop-probe", help="success of the stop-and-look teacher (--expert stop) driven by its own "
-                       "labels in the fast world, per family, beside a straight car at full throttle")
+                       "labels in the fast world, per family, beside the non-evading references")
     p.add_argument("--scenarios", required=True, help="suite NAME (train split), folder or scenario files")
     p.add_argument("--families", default="cross-left,cross-right", help="the families the teacher drives "
                    "(as --mirror-families); the others drive straight at full throttle")
@@ -22,36 +23,34 @@ def add_subcommands(sub) -> None:
     p.set_defaults(stage="stop-probe")
 
 
-def stop_probe(scenarios: str, families: list[str], n: int, seed: int) -> dict[str, tuple[int, float, float]]:
-    """{family: (episodes, teacher's success, straight full-throttle success)} on the same seeds."""
+def stop_probe(scenarios: str, families: list[str], n: int, seed: int) -> dict[str, dict[str, tuple[int, float]]]:
+    """{driver: {family: (episodes, success)}}: the stop-and-look teacher, then the non-evading
+    references (select.reference_drivers), on the same seeds (so the same files per world)."""
     import numpy as np
 
     from racecav.common.config import EnvConfig
     from racecav.training.mirror import MirrorTeacher
-    from racecav.training.select import ConstantAction
+    from racecav.training.select import ConstantAction, reference_drivers
     from racecav.training.vec_env import FastVecEnv
 
-    straight = ConstantAction(1.0)
+    # the teacher needs the brake; its "in the ego's scan" is the shipped avoid's (wide) view
     cfg = EnvConfig(scenarios=scenarios, scenario_share=1.0, lidar="wide", obs_stack=1, brake_below=-0.5)
     out = {}
-    for driver in ("teacher", "straight"):
+    for name, driver in {"stop and look": None, **reference_drivers()}.items():
         env = FastVecEnv(n_envs=n, config=cfg, seed=seed)
         obs = env.reset()
-        teacher = MirrorTeacher(straight, env, families, relabel="stop") if driver == "teacher" else None
+        teacher = MirrorTeacher(ConstantAction(1.0), env, families, relabel="stop") if driver is None else None
         fam = np.concatenate([np.array(w.scenario_families)[w.scenario_index] if w.actors is not None
                               else np.full(w.n_envs, "traffic") for w in env.worlds])
         done, ok = np.zeros(n, bool), np.zeros(n, bool)
         while not done.all():
-            act = teacher.labels(obs)[0] if teacher else straight(obs)
+            act = teacher.labels(obs)[0] if teacher else driver(obs)
             obs, _r, d, infos = env.step(act.astype(np.float32))
             for i in np.flatnonzero(d & ~done):
                 ok[i] = infos[i].get("is_success", False)
             done |= d
         env.close()
-        for f in sorted(set(fam.tolist())):
-            m = fam == f
-            prev = out.get(f, (int(m.sum()), float("nan"), float("nan")))
-            out[f] = (prev[0], float(ok[m].mean()), prev[2]) if driver == "teacher" else (prev[0], prev[1], float(ok[m].mean()))
+        out[name] = {f: (int((fam == f).sum()), float(ok[fam == f].mean())) for f in sorted(set(fam.tolist()))}
     return out
 
 
@@ -68,8 +67,9 @@ def run(args, cfg) -> int:
         res = stop_probe(args.scenarios, families, args.n, SELECT_SEED if args.seed is None else args.seed)
     except (ValueError, FileNotFoundError) as e:  # the teacher names its training flag
         raise SystemExit(f"racecav train stop-probe: {str(e).replace('--mirror-families', '--families')}") from None
-    print(f"stop-and-look teacher on {args.scenarios} (it drives {', '.join(families)}; the rest straight at full throttle)")
-    print("| family | episodes | stop and look | straight, full throttle |\n|---|---:|---:|---:|")
-    for f, (k, s, r) in res.items():
-        print(f"| {f} | {k} | {100 * s:.0f} % | {100 * r:.0f} % |")
+    print(f"stop-and-look teacher on {args.scenarios} (it drives {', '.join(families)}; the rest straight at full "
+          "throttle), beside the non-evading references on the same seeds")
+    print("| family | episodes | " + " | ".join(res) + " |\n|---|---:|" + "---:|" * len(res))
+    for f, (k, _s) in res["stop and look"].items():
+        print(f"| {f} | {k} | " + " | ".join(f"{100 * r[f][1]:.0f} %" for r in res.values()) + " |")
     return 0
