@@ -511,7 +511,7 @@ class TrainConfig(Section):
     """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
     touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
     scores better; training/expert.Expert)."""
-    expert: Literal["planner", "mirror", "track", "hold", "stop"] = "planner"
+    expert: Literal["planner", "mirror", "track", "hold", "stop", "yield"] = "planner"
     """dagger, and overtake with bc_coef: the teacher. planner: the privileged planner
     (training/expert.py); mirror: the ``init_from`` policy itself, its action on the mirrored scan
     in the ``mirror_families`` scenarios and its own action elsewhere (training/mirror.py; with
@@ -521,7 +521,8 @@ class TrainConfig(Section):
     the ego's scan in the episode (whatever its side), the policy's own action elsewhere; stop: stop
     and look in the ``mirror_families`` scenarios (brake before the crossing, wait while a car in the
     ego's scan is in it or closing on it, then go straight; needs env.brake_below;
-    training/mirror.MirrorTeacher), the policy's own action elsewhere."""
+    training/mirror.MirrorTeacher), the policy's own action elsewhere; yield: as stop without the
+    stop before the crossing (the brake only while a car in the ego's scan is in or closing on it)."""
     mirror_families: str = "cross-left"
     """dagger or bc_coef with expert mirror, track or hold: the scenario families (comma-separated; a
     family of every suite, cross-left, or of one, paper-timed/cross-left) whose steps with a car

@@ -377,11 +377,13 @@ def test_aux_seen_head_is_fitted_on_the_labelled_steps_and_not_shipped(tmp_path,
     assert "--aux-seen is fitted on --expert hold's labelled steps" in capsys.readouterr().out
 
 
-def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
-    """--expert stop: driven by its own labels, the stop-and-look teacher passes the paper's
-    crossings from either side in both timings (fast world), where a straight ego at full throttle
-    loses the conflict-timed ones; it brakes before the crossing, steers the road's tracking steer
-    and labels only the named families short of the crossing; it needs the run's brake."""
+@pytest.mark.parametrize("relabel", ["stop", "yield"])
+def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path, relabel):
+    """--expert stop and yield: driven by its own labels, the teacher passes the paper's crossings
+    from either side in both timings (fast world), where a straight ego at full throttle loses the
+    conflict-timed ones; stop brakes before every crossing, yield only while a car in its scan is
+    busy (so never where none is in view); both steer the road's tracking steer and label only the
+    named families short of the crossing; both need the run's brake."""
     from racecav.training.expert import tracking_steer
 
     folder = tmp_path / "sides"
@@ -396,7 +398,7 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
                                            lidar="wide", obs_stack=2, brake_below=brake), seed=5)
 
     with pytest.raises(ValueError, match="brake-below"):
-        MirrorTeacher(policy, env_of(None), names, relabel="stop")
+        MirrorTeacher(policy, env_of(None), names, relabel=relabel)
 
     def drive(env, teacher=None, labelled=()):
         (world,) = env.worlds
@@ -414,7 +416,10 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
                 assert np.array_equal(mask, mine & (world.x[:, 0] < 0.0))
                 assert np.allclose(act[mask, 1], tracking_steer(world)[mask])
                 assert np.array_equal(act[~mask], policy(raw)[~mask])  # elsewhere the policy's own action
-                braked |= mask & (act[:, 0] < -0.5) & ~done
+                brake = mask & (act[:, 0] < -0.5) & ~done
+                if relabel == "yield" and brake.any():  # it brakes only for a car its scan shows
+                    assert world.seen_by_agent(np.flatnonzero(brake)).any(axis=1).all()
+                braked |= brake
             _obs, _r, d, infos = env.step(act.astype(np.float32))
             for i in np.flatnonzero(d & ~done):
                 ok[i] = infos[i].get("is_success", False)
@@ -425,27 +430,33 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path):
     fam, ok, braked = drive(env_of(-0.5), None)
     assert not ok[np.char.startswith(fam.astype(str), "conflict")].any()  # the straight pass loses these
     env = env_of(-0.5)
-    fam, ok, braked = drive(env, MirrorTeacher(policy, env, names[:2], relabel="stop"), names[:2])
+    fam, ok, braked = drive(env, MirrorTeacher(policy, env, names[:2], relabel=relabel), names[:2])
     left = np.isin(fam, names[:2])
-    assert ok[left].all() and braked[left].all()  # every labelled world stops, and passes
+    assert ok[left].all()
+    if relabel == "stop":
+        assert braked[left].all()  # every labelled world stops, and passes
+    else:  # it waits for the synchronised car (and brakes briefly for the paper-timed one once in view)
+        assert braked[fam == names[1]].all()
     # the same teacher on the right-hand side: it is side-neutral
     env = env_of(-0.5)
-    fam, ok, _braked = drive(env, MirrorTeacher(policy, env, names, relabel="stop"), names)
+    fam, ok, _braked = drive(env, MirrorTeacher(policy, env, names, relabel=relabel), names)
     assert ok.all(), {f: ok[fam == f].mean() for f in names}
 
 
-def test_stop_probe_reports_the_teacher_beside_the_straight_car(capsys):
-    """`racecav train stop-probe`: per family, the stop-and-look teacher where it drives, beside the
-    non-evading references on the same seeds; a family it does not drive goes straight at full throttle."""
+@pytest.mark.parametrize("expert", ["stop", "yield"])
+def test_stop_probe_reports_the_teacher_beside_the_straight_car(capsys, expert):
+    """`racecav train stop-probe [--expert stop|yield]`: per family, the teacher where it drives, beside
+    the non-evading references on the same seeds; a family it does not drive goes straight at full throttle."""
     import re
 
     from racecav.cli import main
 
     files = ",".join(str(SCENARIOS_DIR / f"{n}.toml") for n in ("conflict-left-to-right", "left-to-right"))
-    assert main(["train", "stop-probe", "--scenarios", files, "--families", "conflict-left-to-right", "--n", "64"]) == 0
+    assert main(["train", "stop-probe", "--scenarios", files, "--families", "conflict-left-to-right", "--n", "64",
+                 "--expert", expert]) == 0
     rows = {m[0]: (int(m[1]), int(m[2]), int(m[3]), int(m[4])) for m in
             re.findall(r"^\| ([\w-]+) \| (\d+) \| (\d+) % \| (\d+) % \| (\d+) % \|$", capsys.readouterr().out, re.M)}
-    # columns: stop and look, straight at 1 m/s, straight at full throttle (the references)
+    # columns: the teacher, straight at 1 m/s, straight at full throttle (the references)
     assert rows["conflict-left-to-right"][1:] == (100, 0, 0)  # stops for the synchronised car; no straight car passes
     assert rows["left-to-right"][1:] == (100, 0, 100)  # not driven by the teacher: it is the full-throttle car there
     assert sum(r[0] for r in rows.values()) == 64

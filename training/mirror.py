@@ -45,7 +45,7 @@ def mirror_action(action: np.ndarray) -> np.ndarray:
     return out
 
 
-RELABELS = ("mirror", "track", "hold", "stop")  # the --expert teachers that are the init_from policy, relabelled
+RELABELS = ("mirror", "track", "hold", "stop", "yield")  # the --expert teachers that are the init_from policy, relabelled
 NEAR_M = 5.0   # m: an actor this close (about where the crossings' cars come into view) ...
 LEFT_M = 0.3   # m: ... and this far to the ego's left makes the scene a mirrored one
 # --expert stop (stop and look): brake from STOP_M before the conflict point to below HALT_V, then
@@ -82,6 +82,10 @@ class MirrorTeacher:
         and either side passes first (a synchronised one slows to its 0.5 m/s floor and goes by),
         so no turn begun before the car is in view is needed; it reads the cars only where the
         scan shows them, so a policy can learn it.
+        yield: stop and look without the stop before the crossing: full throttle along the road,
+        the brake only while a car *in the ego's scan* is in the crossing or closing on it (so
+        the label changes only where the scan shows a car: an intersection with no car in view
+        is driven through at full throttle, like the paper-timed crossings a fast ego passes first).
     :param anchor_seen: relabel hold: :meth:`anchored` also returns every step of a ``families``
         scenario after its hold ended (a car seen, or the ego past the crossing's centre), whose
         label is the policy's own action: the answers after the car is in view are held where they
@@ -98,8 +102,8 @@ class MirrorTeacher:
             raise ValueError("--expert hold labels the steps before a car is seen: --mirror-seen contradicts it")
         if anchor_seen and relabel != "hold":
             raise ValueError("--anchor-seen anchors the steps after --expert hold's labels: use it with --expert hold")
-        if relabel == "stop" and fast_env.settings.brake_below is None:
-            raise ValueError("--expert stop brakes: set --brake-below (the run's policy needs a brake)")
+        if relabel in ("stop", "yield") and fast_env.settings.brake_below is None:
+            raise ValueError(f"--expert {relabel} brakes: set --brake-below (the run's policy needs a brake)")
         self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel
         self.anchor_seen = anchor_seen
         qualified = {f for w in fast_env.worlds if w.actors is not None for f in w.scenario_families}
@@ -164,8 +168,8 @@ class MirrorTeacher:
         return np.concatenate(out)
 
     def _stop_and_look(self) -> tuple[np.ndarray, np.ndarray]:
-        """(labelled (N,), throttle label (N,)), relabel stop: the worlds of ``families`` whose ego
-        is short of the crossing's centre, and the stop-and-look throttle there (+1 go, -1 brake).
+        """(labelled (N,), throttle label (N,)), relabel stop or yield: the worlds of ``families``
+        whose ego is short of the crossing's centre, and the throttle there (+1 go, -1 brake).
         Call it at every step: the latches follow each world's episode."""
         lab, thr = [], []
         for k, (w, m) in enumerate(zip(self.fast.worlds, self._mirrored)):
@@ -177,20 +181,35 @@ class MirrorTeacher:
             halted, go = self._halted[k], self._go[k]
             halted[new] = go[new] = False
             x, v = w.x[:, 0], w.v[:, 0]
+            short = m[w.scenario_index] & (x < 0.0)
+            if self.relabel == "yield":  # no latches: brake exactly while a seen car is busy
+                brake = np.zeros(w.n_envs, bool)
+                look = np.flatnonzero(short)
+                if look.size:
+                    brake[look] = self._busy(w, look)
+                lab.append(short)
+                thr.append(np.where(brake, -1.0, 1.0))
+                continue
             near = x >= -STOP_M
             halted |= near & (v < HALT_V)
             look = np.flatnonzero(halted & ~go & m[w.scenario_index])
             if look.size:
-                dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
-                d = np.hypot(dx, dy)
-                closing = dx * np.cos(w.yaw[look, 1:]) + dy * np.sin(w.yaw[look, 1:]) < 0.0
-                busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > 0.05))
-                busy &= w.seen_by_agent(look)
-                go[look[~busy.any(axis=1)]] = True
+                go[look[~self._busy(w, look)]] = True
             go |= x >= 0.0
-            lab.append(m[w.scenario_index] & (x < 0.0))
+            lab.append(short)
             thr.append(np.where(~near | go, 1.0, -1.0))
         return np.concatenate(lab), np.concatenate(thr)
+
+    @staticmethod
+    def _busy(w, look: np.ndarray) -> np.ndarray:
+        """(len(look),) bool: a car in the ego's scan within BOX_M of the conflict point, or within
+        APPROACH_M, moving and closing on it (the scenario's conflict point: x = 0 on the ego's road)."""
+        dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
+        d = np.hypot(dx, dy)
+        closing = dx * np.cos(w.yaw[look, 1:]) + dy * np.sin(w.yaw[look, 1:]) < 0.0
+        busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > 0.05))
+        busy &= w.seen_by_agent(look)
+        return busy.any(axis=1)
 
     def mirrored(self) -> np.ndarray:
         """(N,) bool: the worlds whose current episode is a scenario of a mirrored family and
@@ -201,7 +220,7 @@ class MirrorTeacher:
         if self.relabel == "hold":
             self._held = self._unseen()
             return self._held
-        if self.relabel == "stop":
+        if self.relabel in ("stop", "yield"):
             self._held, self._stop_throttle = self._stop_and_look()
             return self._held
         return self._near(self._mirrored, +1.0)
@@ -233,7 +252,7 @@ class MirrorTeacher:
 
             steer = np.concatenate([tracking_steer(w) if w.actors is not None else np.zeros(w.n_envs)
                                     for w in self.fast.worlds])
-            throttle = self._stop_throttle[mask] if self.relabel == "stop" else np.ones(int(mask.sum()))
+            throttle = self._stop_throttle[mask] if self.relabel in ("stop", "yield") else np.ones(int(mask.sum()))
             out[mask] = np.stack([throttle, steer[mask]], axis=1)
         return out, mask
 

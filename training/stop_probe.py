@@ -1,10 +1,11 @@
-"""``racecav train stop-probe``: what the stop-and-look teacher (``--expert stop``) passes, driven
-by its own labels in the fast world, beside the non-evading references (straight at 1 m/s and at
-full throttle) on the same seeds.
+"""``racecav train stop-probe``: what the stop-and-look teacher (``--expert stop``) or the yield
+teacher (``--expert yield``) passes, driven by its own labels in the fast world, beside the
+non-evading references (straight at 1 m/s and at full throttle) on the same seeds.
 
 Every world drives one episode of the scenario files (selection seed); the teacher's families are
 driven by its labels (training/mirror.MirrorTeacher, relabel stop: brake before the crossing,
-wait while a car in the ego's scan is in it or closing on it, then straight on), every other
+wait while a car in the ego's scan is in it or closing on it, then straight on; relabel yield:
+the same without the stop before the crossing), every other
 family straight at full throttle. It answers whether a manoeuvre that needs no turn before the car
 is in view passes both timings of a family, before a policy is trained to it.
 """
@@ -13,18 +14,20 @@ from __future__ import annotations
 
 
 def add_subcommands(sub) -> None:
-    p = sub.add_parser("stop-probe", help="success of the stop-and-look teacher (--expert stop) driven by its own "
+    p = sub.add_parser("stop-probe", help="success of the stop-and-look (--expert stop) or yield teacher driven by its own "
                        "labels in the fast world, per family, beside the non-evading references")
     p.add_argument("--scenarios", required=True, help="suite NAME (train split), folder or scenario files")
     p.add_argument("--families", default="cross-left,cross-right", help="the families the teacher drives "
                    "(as --mirror-families); the others drive straight at full throttle")
+    p.add_argument("--expert", choices=("stop", "yield"), default="stop", help="the teacher: stop (brake "
+                   "before every crossing, then look) or yield (brake only while a car in the scan is busy)")
     p.add_argument("--n", type=int, default=1024, help="fast worlds (one episode each)")
     p.add_argument("--seed", type=int, help="default: select's selection seed")
     p.set_defaults(stage="stop-probe")
 
 
-def stop_probe(scenarios: str, families: list[str], n: int, seed: int) -> dict[str, dict[str, tuple[int, float]]]:
-    """{driver: {family: (episodes, success)}}: the stop-and-look teacher, then the non-evading
+def stop_probe(scenarios: str, families: list[str], n: int, seed: int, relabel: str = "stop") -> dict[str, dict[str, tuple[int, float]]]:
+    """{driver: {family: (episodes, success)}}: the teacher (``relabel`` stop or yield), then the non-evading
     references (select.reference_drivers), on the same seeds (so the same files per world)."""
     import numpy as np
 
@@ -36,10 +39,11 @@ def stop_probe(scenarios: str, families: list[str], n: int, seed: int) -> dict[s
     # the teacher needs the brake; its "in the ego's scan" is the shipped avoid's (wide) view
     cfg = EnvConfig(scenarios=scenarios, scenario_share=1.0, lidar="wide", obs_stack=1, brake_below=-0.5)
     out = {}
-    for name, driver in {"stop and look": None, **reference_drivers()}.items():
+    teacher_name = {"stop": "stop and look", "yield": "yield"}[relabel]
+    for name, driver in {teacher_name: None, **reference_drivers()}.items():
         env = FastVecEnv(n_envs=n, config=cfg, seed=seed)
         obs = env.reset()
-        teacher = MirrorTeacher(ConstantAction(1.0), env, families, relabel="stop") if driver is None else None
+        teacher = MirrorTeacher(ConstantAction(1.0), env, families, relabel=relabel) if driver is None else None
         fam = np.concatenate([np.array(w.scenario_families)[w.scenario_index] if w.actors is not None
                               else np.full(w.n_envs, "traffic") for w in env.worlds])
         done, ok = np.zeros(n, bool), np.zeros(n, bool)
@@ -64,12 +68,12 @@ def run(args, cfg) -> int:
         raise SystemExit("racecav train stop-probe: --n must be >= 1")
     families = [f.strip() for f in args.families.split(",") if f.strip()]
     try:
-        res = stop_probe(args.scenarios, families, args.n, SELECT_SEED if args.seed is None else args.seed)
+        res = stop_probe(args.scenarios, families, args.n, SELECT_SEED if args.seed is None else args.seed, args.expert)
     except (ValueError, FileNotFoundError) as e:  # the teacher names its training flag
         raise SystemExit(f"racecav train stop-probe: {str(e).replace('--mirror-families', '--families')}") from None
-    print(f"stop-and-look teacher on {args.scenarios} (it drives {', '.join(families)}; the rest straight at full "
+    print(f"{args.expert} teacher on {args.scenarios} (it drives {', '.join(families)}; the rest straight at full "
           "throttle), beside the non-evading references on the same seeds")
     print("| family | episodes | " + " | ".join(res) + " |\n|---|---:|" + "---:|" * len(res))
-    for f, (k, _s) in res["stop and look"].items():
+    for f, (k, _s) in next(iter(res.values())).items():
         print(f"| {f} | {k} | " + " | ".join(f"{100 * r[f][1]:.0f} %" for r in res.values()) + " |")
     return 0
