@@ -534,7 +534,9 @@ class TrainConfig(Section):
     anchor_families: str = ""
     """overtake with bc_coef and expert mirror: families (comma-separated) whose steps with a car
     near on the ego's right are labelled with the teacher's own action (e.g. cross-right, the
-    mirror pair), besides the anchor steps; training/mirror.MirrorTeacher.anchored."""
+    mirror pair), besides the anchor steps; with expert yield: families whose approach gets yield's
+    label (tracking at full throttle until a car has been in the ego's scan) and whose steps after it
+    the teacher's own action; training/mirror.MirrorTeacher.anchored."""
     anchor_seen: bool = False
     """overtake with bc_coef and expert hold: also label every step of a ``mirror_families`` scenario
     after the hold ends (a car has been in the ego's scan, or the ego is past the crossing's centre)

@@ -462,3 +462,41 @@ def test_stop_probe_reports_the_teacher_beside_the_straight_car(capsys, expert):
     assert sum(r[0] for r in rows.values()) == 64
     with pytest.raises(SystemExit, match="--families"):
         main(["train", "stop-probe", "--scenarios", files, "--families", "nope", "--n", "8"])
+
+
+def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer(tmp_path):
+    """--expert yield --anchor-families F: in F's scenarios, tracking at full throttle until a car
+    has been in the ego's scan (short of the crossing), then the policy's own action (anchored),
+    latched for the episode; the yield families are never anchored."""
+    from racecav.training.expert import latch_seen, tracking_steer
+
+    folder = tmp_path / "mix"
+    folder.mkdir()
+    # the head-on car is in view from the start (anchored at once), the crossing one behind a corner
+    yielding, anchors = ["conflict-left-to-right", "left-to-right"], ["conflict-right-to-left", "head-to-head"]
+    for name in yielding + anchors:
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", folder / f"{name}.toml")
+    policy = load_policy("avoid")
+    env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2, brake_below=-0.5), seed=3)
+    teacher = MirrorTeacher(policy, env, yielding, anchors, relabel="yield")
+    (world,) = env.worlds
+    env.reset()
+    seen = np.zeros(env.num_envs, bool)
+    approach = anchored = 0
+    for _ in range(60):
+        raw = env._stacked()
+        act, mask = teacher.labels(raw)
+        anch = teacher.anchored()
+        fam = np.array(world.scenario_families)[world.scenario_index]
+        mine = np.isin(fam, anchors)
+        seen = latch_seen(world, seen, np.arange(env.num_envs))
+        held = mine & ~seen & (world.x[:, 0] < 0.0)
+        assert np.array_equal(mask & mine, held)  # the approach, until a car is in view
+        assert np.allclose(act[held], np.stack([np.ones(held.sum()), tracking_steer(world)[held]], axis=1))
+        assert np.array_equal(anch, mine & ~held)  # after it: anchored, the label is the policy's own
+        assert np.array_equal(act[anch], policy(raw)[anch])
+        approach, anchored = approach + held.sum(), anchored + anch.sum()
+        env.step(policy(raw))
+    assert approach > 0 and anchored > 0  # both kinds of step were met
+    env.close()

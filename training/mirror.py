@@ -86,6 +86,11 @@ class MirrorTeacher:
         the brake only while a car *in the ego's scan* is in the crossing or closing on it (so
         the label changes only where the scan shows a car: an intersection with no car in view
         is driven through at full throttle, like the paper-timed crossings a fast ego passes first).
+        Its ``anchor_families`` get the same approach and keep their own answers: tracking at full
+        throttle until a car has been in the ego's scan (short of the crossing), the policy's own
+        action after it (:meth:`anchored`). Why: the approach scans of every intersection family
+        are the same, so one label fits all of them; the families yield does not answer (a car
+        ahead, oncoming or turning) keep the starting policy's evasion once that car is in view.
     :param anchor_seen: relabel hold: :meth:`anchored` also returns every step of a ``families``
         scenario after its hold ended (a car seen, or the ego past the crossing's centre), whose
         label is the policy's own action: the answers after the car is in view are held where they
@@ -112,11 +117,12 @@ class MirrorTeacher:
             unknown = [f for f in names if f not in have]
             if (flag == "--mirror-families" and not names) or unknown:
                 raise ValueError(f"{flag}: {unknown or names} not among the scenario families {have}")
-        self.families = set(families)
+        self.families, self.anchor_families = set(families), set(anchor_families)
         # per world: a bool per scenario file, True where its family is mirrored (anchored)
         self._mirrored = self._per_file(set(families))
         self._anchored = self._per_file(set(anchor_families))
         self._seen = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]  # hold: latched per episode
+        self._seen_anchor = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]  # yield's anchor families
         self._held = np.zeros(fast_env.num_envs, bool)  # hold: the newest mirrored() mask
         # stop: per world, latched per episode: the ego has come down to HALT_V / has been let go
         self._halted = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
@@ -146,17 +152,20 @@ class MirrorTeacher:
             out.append(near.any(axis=1))
         return np.concatenate(out)
 
-    def _unseen(self) -> np.ndarray:
-        """(N,) bool, relabel hold: the worlds running a file of ``families`` in which no car has
-        returned a ray of the ego's scan yet this episode and whose ego is short of the crossing's
-        centre. Call it at every step (training/expert.latch_seen)."""
+    def _unseen(self, per_file=None, latches=None) -> np.ndarray:
+        """(N,) bool, relabel hold: the worlds running a file of ``families`` (or of ``per_file``,
+        with its own ``latches``) in which no car has returned a ray of the ego's scan yet this
+        episode and whose ego is short of the crossing's centre. Call it at every step
+        (training/expert.latch_seen)."""
         from racecav.training.expert import latch_seen
 
+        per_file = self._mirrored if per_file is None else per_file
+        latches = self._seen if latches is None else latches
         if self.fast.hold_until_seen:  # the rollouts' own override: the same latch, kept by the env
             return self.fast.held & np.concatenate([np.zeros(w.n_envs, bool) if m is None else m[w.scenario_index]
-                                                    for w, m in zip(self.fast.worlds, self._mirrored)])
+                                                    for w, m in zip(self.fast.worlds, per_file)])
         out = []
-        for w, m, seen in zip(self.fast.worlds, self._mirrored, self._seen):
+        for w, m, seen in zip(self.fast.worlds, per_file, latches):
             if m is None:
                 out.append(np.zeros(w.n_envs, bool))
                 continue
@@ -222,6 +231,9 @@ class MirrorTeacher:
             return self._held
         if self.relabel in ("stop", "yield"):
             self._held, self._stop_throttle = self._stop_and_look()
+            if self.relabel == "yield" and self.anchor_families:  # their approach: tracking at full throttle
+                unseen = self._unseen(self._anchored, self._seen_anchor)
+                self._held, self._stop_throttle = self._held | unseen, np.where(unseen, 1.0, self._stop_throttle)
             return self._held
         return self._near(self._mirrored, +1.0)
 
@@ -229,13 +241,19 @@ class MirrorTeacher:
         """(N,) bool: the worlds of an anchor family whose ego has an actor near on its right
         (the mirror image of :meth:`mirrored`); their label is the policy's own action. With
         ``anchor_seen``, also the steps of a ``families`` scenario that :meth:`mirrored` (call it
-        first, at the same step) did not hold."""
+        first, at the same step) did not hold. Relabel yield: the steps of its anchor families
+        after their approach's label ended (a car seen, or the ego past the crossing's centre)."""
+        if self.relabel == "yield":  # its anchor families, once their approach's label ended
+            return self._family(self._anchored) & ~self._held
         near = self._near(self._anchored, -1.0)
         if self.anchor_seen:
-            fam = np.concatenate([np.zeros(w.n_envs, bool) if m is None else m[w.scenario_index]
-                                  for w, m in zip(self.fast.worlds, self._mirrored)])
-            near |= fam & ~self._held
+            near |= self._family(self._mirrored) & ~self._held
         return near
+
+    def _family(self, per_file: list[np.ndarray | None]) -> np.ndarray:
+        """(N,) bool: the worlds whose current episode runs a file of ``per_file``."""
+        return np.concatenate([np.zeros(w.n_envs, bool) if m is None else m[w.scenario_index]
+                               for w, m in zip(self.fast.worlds, per_file)])
 
     def labels(self, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(labels (N, 2), relabelled (N,)) for the raw (not normalised) stacked scans ``raw_obs``:
