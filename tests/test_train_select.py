@@ -99,7 +99,7 @@ def test_references_never_evade(tmp_path):
 
 def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
     """training/targets.py: a checkpoint that misses only the paper-timed left-to-right ranks above
-    one with a higher score that misses three; a rate of 89.6 % prints and counts as 90 %;
+    one with a higher score that misses three, and of two that miss it, the nearer one first; a rate of 89.6 % prints and counts as 90 %;
     the committed records' pick is a committed checkpoint, and the page says whether avoid is it."""
     import json
 
@@ -111,17 +111,20 @@ def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
             "conflict-left-to-right_success", "suite_success", "suite_episodes", "suite_cross-left", "suite_head-on",
             "right-to-left_success", "head-to-head_success", "left-to-right_success"]
     rows = {"a": [1e6, "step_a.zip", 0.92, 1.0, 0.84, 0.99, 0.91, 512, 0.67, 0.9, 1.0, 0.98, 0.76],
-            "b": [4e6, "step_b.zip", 0.91, 0.99, 0.896, 0.98, 0.92, 512, 0.75, 0.9, 1.0, 0.99, 0.51]}
+            "b": [4e6, "step_b.zip", 0.91, 0.99, 0.896, 0.98, 0.92, 512, 0.75, 0.9, 1.0, 0.99, 0.51],
+            # 7 of 8 like b, missing the same target by fewer points: ranks first despite the lower score
+            "c": [2e6, "step_c.zip", 0.90, 0.99, 0.9, 0.98, 0.92, 512, 0.75, 0.9, 1.0, 0.99, 0.60]}
     for run, vals in rows.items():
         (tmp_path / run).mkdir()
         with (tmp_path / run / "eval.csv").open("w", newline="") as f:
             w = csv.writer(f)
             w.writerows([cols, vals])
     top = targets.ranked(targets.evaluated(tmp_path))
-    assert [r["run"] for r in top] == ["b", "a"]
-    assert [sum(targets.met(r)) for r in top] == [7, 5]
+    assert [r["run"] for r in top] == ["c", "b", "a"]
+    assert [sum(targets.met(r)) for r in top] == [7, 7, 5]
+    assert [targets.shortfall(r) for r in top] == [40, 49, 6 + 3 + 24]
     table = targets.markdown(targets.evaluated(tmp_path), targets.references(COMMITTED))
-    assert "| b | 4.0 M | 7 / 8 | 91 | 99 | 90 |" in table and "*51*" in table and "*67*" in table
+    assert "| b | 4.0 M | 7 / 8 | 49 | 91 | 99 | 90 |" in table and "*51*" in table and "*67*" in table
     # the references close the table: full throttle passes only the paper-timed side scenarios
     assert "| *straight, full throttle* | reference | 2 / 8 |" in table, table
 
