@@ -467,8 +467,12 @@ def test_stop_probe_reports_the_teacher_beside_the_straight_car(capsys, expert):
 def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer(tmp_path):
     """--expert yield --anchor-families F: in F's scenarios, tracking at full throttle until a car
     has been in the ego's scan (short of the crossing), then the policy's own action (anchored),
-    latched for the episode; the yield families are never anchored."""
+    latched for the episode; the yield families are never anchored. A teacher trained without a
+    brake labels its coasts (a_T < 0) as coasts (0), not as the run's brake."""
+    from racecav.common.policy import MODELS_DIR
+    from racecav.training.dagger import own_brake
     from racecav.training.expert import latch_seen, tracking_steer
+    from racecav.training.select import COMMITTED
 
     folder = tmp_path / "mix"
     folder.mkdir()
@@ -479,11 +483,14 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
     policy = load_policy("avoid")
     env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2, brake_below=-0.5), seed=3)
-    teacher = MirrorTeacher(policy, env, yielding, anchors, relabel="yield")
+    # the shipped avoid has no brake: its a_T < 0 (a coast) must not become a brake label here
+    assert own_brake(MODELS_DIR / "avoid.zip") is None
+    assert own_brake(COMMITTED / "avoid-gsde-stoplook" / "latest.zip") == -0.5
+    teacher = MirrorTeacher(policy, env, yielding, anchors, relabel="yield", teacher_brakes=False)
     (world,) = env.worlds
     env.reset()
     seen = np.zeros(env.num_envs, bool)
-    approach = anchored = 0
+    approach = anchored = coasts = 0
     for _ in range(60):
         raw = env._stacked()
         act, mask = teacher.labels(raw)
@@ -495,8 +502,11 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
         assert np.array_equal(mask & mine, held)  # the approach, until a car is in view
         assert np.allclose(act[held], np.stack([np.ones(held.sum()), tracking_steer(world)[held]], axis=1))
         assert np.array_equal(anch, mine & ~held)  # after it: anchored, the label is the policy's own
-        assert np.array_equal(act[anch], policy(raw)[anch])
+        own = policy(raw)
+        coasts += int((own[anch, 0] < 0.0).sum())
+        own[:, 0] = np.maximum(own[:, 0], 0.0)
+        assert np.array_equal(act[anch], own[anch])
         approach, anchored = approach + held.sum(), anchored + anch.sum()
         env.step(policy(raw))
-    assert approach > 0 and anchored > 0  # both kinds of step were met
+    assert approach > 0 and anchored > 0 and coasts > 0  # every kind of step was met
     env.close()

@@ -87,7 +87,22 @@ def mirror_teacher(tc, fast):
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
     return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
-                         relabel=tc.expert, anchor_seen=tc.anchor_seen)
+                         relabel=tc.expert, anchor_seen=tc.anchor_seen,
+                         teacher_brakes=own_brake(Path(tc.init_from)) is not None)
+
+
+def own_brake(zip_path: Path) -> float | None:
+    """The brake threshold a checkpoint was trained with: its run's config.json (a run's checkpoint)
+    or its metadata .json beside it (a shipped policy); None without either (no brake)."""
+    import json
+
+    from racecav.training.runs import load_run_config
+
+    run_dir = zip_path.parent.parent if zip_path.parent.name == "checkpoints" else zip_path.parent
+    if (run_dir / "config.json").is_file():
+        return load_run_config(run_dir)[0].env.brake_below
+    meta = zip_path.with_suffix(".json")
+    return json.loads(meta.read_text()).get("brake_below") if meta.is_file() else None
 
 
 class _Stop:

@@ -95,12 +95,16 @@ class MirrorTeacher:
         scenario after its hold ended (a car seen, or the ego past the crossing's centre), whose
         label is the policy's own action: the answers after the car is in view are held where they
         were while the steps before it are fitted to the straight approach.
+    :param teacher_brakes: whether ``policy`` was trained with a brake. Without one its a_T < 0 is a
+        coast, which the run's brake would read as a brake below brake_below: its own actions are
+        labelled with a_T >= 0 then (a coast here too).
     :raises ValueError: when no scenario of the env belongs to one of ``families`` (a typo would
         otherwise label nothing and fit the policy to itself).
     """
 
     def __init__(self, policy, fast_env, families: list[str], anchor_families: list[str] = (),
-                 seen_only: bool = False, relabel: str = "mirror", anchor_seen: bool = False):
+                 seen_only: bool = False, relabel: str = "mirror", anchor_seen: bool = False,
+                 teacher_brakes: bool = True):
         if relabel not in RELABELS:
             raise ValueError(f"relabel: {' | '.join(RELABELS)}, not {relabel!r}")
         if relabel == "hold" and seen_only:
@@ -111,6 +115,7 @@ class MirrorTeacher:
             raise ValueError(f"--expert {relabel} brakes: set --brake-below (the run's policy needs a brake)")
         self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel
         self.anchor_seen = anchor_seen
+        self.coast_only = not teacher_brakes and fast_env.settings.brake_below is not None
         qualified = {f for w in fast_env.worlds if w.actors is not None for f in w.scenario_families}
         have = sorted(qualified | {f.split("/")[-1] for f in qualified})
         for flag, names in (("--mirror-families", families), ("--anchor-families", anchor_families)):
@@ -262,6 +267,8 @@ class MirrorTeacher:
         or with the stop-and-look throttle (relabel stop)."""
         mask = self.mirrored()
         out = self.policy(raw_obs).copy()
+        if self.coast_only:  # a teacher without a brake coasts below 0: not a brake label
+            out[:, 0] = np.maximum(out[:, 0], 0.0)
         if mask.any() and self.relabel == "mirror":
             m = mirror_scans(raw_obs[mask], self.policy.obs_stack)
             out[mask] = mirror_action(self.policy(m))
