@@ -537,6 +537,10 @@ class TrainConfig(Section):
     mirror pair), besides the anchor steps; with expert yield: families whose approach gets yield's
     label (tracking at full throttle until a car has been in the ego's scan) and whose steps after it
     the teacher's own action; training/mirror.MirrorTeacher.anchored."""
+    anchor_from: str | None = None
+    """overtake with bc_coef and anchor_families: the SB3 zip (a run's checkpoint, with its
+    normalisation beside it) whose actions label the anchored steps instead of ``init_from``'s, e.g.
+    a policy that kept the evasions the run is to keep while ``init_from`` learnt yield's answer."""
     anchor_seen: bool = False
     """overtake with bc_coef and expert hold: also label every step of a ``mirror_families`` scenario
     after the hold ends (a car has been in the ego's scan, or the ego is past the crossing's centre)

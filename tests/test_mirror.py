@@ -509,4 +509,27 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
         approach, anchored = approach + held.sum(), anchored + anch.sum()
         env.step(policy(raw))
     assert approach > 0 and anchored > 0 and coasts > 0  # every kind of step was met
+
+    class Coasting:  # another policy without a brake, for --anchor-from
+        def __call__(self, obs):
+            return np.tile(np.array([-0.8, 0.2], np.float32), (len(obs), 1))
+
+    teacher.set_anchor_policy(Coasting(), teacher_brakes=False)
+    for _ in range(30):
+        raw = env._stacked()
+        act, mask = teacher.labels(raw)
+        anch = teacher.anchored()
+        assert anch.any() and np.allclose(act[anch], [0.0, 0.2])  # its action, its coast kept a coast
+        assert np.array_equal(act[~anch & ~mask], policy(raw)[~anch & ~mask])
+        env.step(policy(raw))
     env.close()
+
+
+def test_anchor_from_is_refused_without_anchors_or_file(tmp_path, capsys):
+    from racecav.cli import main
+
+    base = ["train", "overtake", "--preset", "fast", "--run-dir", str(tmp_path / "r"), "--steps", "1000"]
+    assert main(base + ["--anchor-from", str(tmp_path / "x.zip")]) == 2
+    assert "--anchor-families" in capsys.readouterr().out
+    assert main(base + ["--anchor-from", str(tmp_path / "x.zip"), "--bc-coef", "0.1", "--anchor-families", "head-on"]) == 2
+    assert "no such file" in capsys.readouterr().out

@@ -86,9 +86,15 @@ def mirror_teacher(tc, fast):
         raise ValueError(f"--expert {tc.expert}: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
-    return MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
-                         relabel=tc.expert, anchor_seen=tc.anchor_seen,
-                         teacher_brakes=own_brake(Path(tc.init_from)) is not None)
+    teacher = MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
+                            relabel=tc.expert, anchor_seen=tc.anchor_seen,
+                            teacher_brakes=own_brake(Path(tc.init_from)) is not None)
+    if getattr(tc, "anchor_from", None):
+        anchor = policy_from_checkpoint(Path(tc.anchor_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
+        if anchor.obs_dim != policy.obs_dim:
+            raise ValueError(f"--anchor-from: {tc.anchor_from} takes {anchor.obs_dim} inputs, the run's view {policy.obs_dim}")
+        teacher.set_anchor_policy(anchor, own_brake(Path(tc.anchor_from)) is not None)
+    return teacher
 
 
 def own_brake(zip_path: Path) -> float | None:

@@ -116,6 +116,7 @@ class MirrorTeacher:
         self.policy, self.fast, self.seen_only, self.relabel = policy, fast_env, seen_only, relabel
         self.anchor_seen = anchor_seen
         self.coast_only = not teacher_brakes and fast_env.settings.brake_below is not None
+        self.anchor_policy, self.anchor_coast_only = None, False
         qualified = {f for w in fast_env.worlds if w.actors is not None for f in w.scenario_families}
         have = sorted(qualified | {f.split("/")[-1] for f in qualified})
         for flag, names in (("--mirror-families", families), ("--anchor-families", anchor_families)):
@@ -132,6 +133,12 @@ class MirrorTeacher:
         # stop: per world, latched per episode: the ego has come down to HALT_V / has been let go
         self._halted = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
         self._go = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
+
+    def set_anchor_policy(self, policy, teacher_brakes: bool) -> None:
+        """Label the :meth:`anchored` steps with ``policy``'s actions instead of the teacher's
+        (``--anchor-from``; ``teacher_brakes`` as in the constructor)."""
+        self.anchor_policy = policy
+        self.anchor_coast_only = not teacher_brakes and self.fast.settings.brake_below is not None
 
     def _per_file(self, names: set[str]) -> list[np.ndarray | None]:
         # a name matches its family in every suite (cross-left) or in one (paper-timed/cross-left)
@@ -269,6 +276,12 @@ class MirrorTeacher:
         out = self.policy(raw_obs).copy()
         if self.coast_only:  # a teacher without a brake coasts below 0: not a brake label
             out[:, 0] = np.maximum(out[:, 0], 0.0)
+        if self.anchor_policy is not None:
+            anch = self.anchored()
+            if anch.any():
+                out[anch] = self.anchor_policy(raw_obs[anch])
+                if self.anchor_coast_only:
+                    out[anch, 0] = np.maximum(out[anch, 0], 0.0)
         if mask.any() and self.relabel == "mirror":
             m = mirror_scans(raw_obs[mask], self.policy.obs_stack)
             out[mask] = mirror_action(self.policy(m))

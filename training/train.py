@@ -48,7 +48,7 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
-IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families",
+IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families", "anchor_from",
                    "anchor_seen", "aux_seen", "expert_horizon_s", "expert_commit_s", "expert_seen", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
@@ -419,6 +419,12 @@ def open_run(args, cfg, run_dir: Path):
         return None
     if tc.anchor_seen and (tc.bc_coef <= 0 or tc.expert != "hold"):
         print("racecav train: --anchor-seen anchors the steps after --expert hold's labels; add --bc-coef C --expert hold")
+        return None
+    if tc.anchor_from and (tc.bc_coef <= 0 or not tc.anchor_families):
+        print("racecav train: --anchor-from labels the anchored steps: add --bc-coef C --anchor-families F")
+        return None
+    if tc.anchor_from and not Path(tc.anchor_from).is_file():
+        print(f"racecav train: --anchor-from {tc.anchor_from}: no such file")
         return None
     if tc.bc_coef > 0 and tc.expert in RELABELS and not tc.init_from:
         print(f"racecav train: --bc-coef with --expert {tc.expert} needs --init-from (the frozen teacher)")
