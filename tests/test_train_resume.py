@@ -141,3 +141,33 @@ def test_init_from_carries_weights_and_normalisation(tmp_path):
     fresh.policy.apply(lambda m: m.reset_parameters() if hasattr(m, "reset_parameters") else None)
     k = "mlp_extractor.policy_net.0.weight"
     assert np.abs((b[k] - a[k]).numpy()).max() < np.abs((fresh.policy.state_dict()[k] - a[k]).numpy()).max() / 5
+
+
+def test_a_save_interrupted_leaves_no_truncated_checkpoint(tmp_path):
+    """training/runs.save_checkpoint: a run killed while writing its checkpoint leaves no
+    step_*.zip (select and --resume read every one), and a finished save leaves no partial file."""
+    from racecav.training.runs import save_checkpoint
+
+    class Model:
+        num_timesteps = 4096
+
+        def __init__(self, fail):
+            self.fail = fail
+
+        def save(self, path):
+            Path(path).write_bytes(b"PK\x03\x04 half a zip")
+            if self.fail:
+                raise KeyboardInterrupt  # the kill, mid-write
+
+    class Norm:
+        def save(self, path):
+            Path(path).write_bytes(b"moments")
+
+    (tmp_path / "checkpoints").mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(tmp_path, Model(fail=True), Norm(), wall_s=1.0)
+    assert not list((tmp_path / "checkpoints").glob("step_*.zip")) and not (tmp_path / "latest.json").exists()
+    ck = save_checkpoint(tmp_path, Model(fail=False), Norm(), wall_s=2.0)
+    names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir() if not p.name.startswith("partial"))
+    assert names == [f"{ck.name}.vecnorm.pkl", f"{ck.name}.zip"]
+    assert (tmp_path / "latest.zip").read_bytes() == ck.with_suffix(".zip").read_bytes()

@@ -38,14 +38,20 @@ def load_run_config(run_dir: Path):
 
 def save_checkpoint(run_dir: Path, model, vec_normalize, wall_s: float, final: bool = False) -> Path:
     """Write ``checkpoints/step_<N>.zip`` (+ ``.vecnorm.pkl``) of an SB3 model at its
-    num_timesteps, then ``latest.*`` as copies renamed into place (an interruption never leaves
-    half a file) and ``latest.json`` (what ``--resume`` reads)."""
+    num_timesteps, then ``latest.*`` as copies, each renamed into place (an interruption never
+    leaves half a file), and ``latest.json`` (what ``--resume`` reads)."""
     n = model.num_timesteps
     ck = Path(run_dir) / "checkpoints" / f"step_{n:09d}"
-    model.save(ck.with_suffix(".zip"))
+    # written under another name, then renamed into place: a run killed while saving leaves no
+    # truncated step_*.zip for select or --resume to trip over; the normalisation first, so that a
+    # step_*.zip never stands without its own
+    partial = ck.parent / "partial"
     if vec_normalize is not None:
-        vec_normalize.save(str(ck.with_suffix(".vecnorm.pkl")))
-    for suffix in (".zip", ".vecnorm.pkl"):
+        vec_normalize.save(str(partial.with_suffix(".vecnorm.pkl")))
+        os.replace(partial.with_suffix(".vecnorm.pkl"), ck.with_suffix(".vecnorm.pkl"))
+    model.save(partial.with_suffix(".zip"))
+    os.replace(partial.with_suffix(".zip"), ck.with_suffix(".zip"))
+    for suffix in (".vecnorm.pkl", ".zip"):  # the normalisation first, as above
         src = ck.with_suffix(suffix)
         if src.is_file():
             tmp = Path(run_dir) / f"latest.tmp{suffix}"
