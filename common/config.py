@@ -537,6 +537,10 @@ class TrainConfig(Section):
     mirror pair), besides the anchor steps; with expert yield: families whose approach gets yield's
     label (tracking at full throttle until a car has been in the ego's scan) and whose steps after it
     the teacher's own action; training/mirror.MirrorTeacher.anchored."""
+    bc_balance: bool = False
+    """overtake with bc_coef: each imitation minibatch half relabelled steps (the teacher's labels) and
+    half the others (anchors, spaced labels), whatever their shares of the stored labels; e.g. yield's
+    few brake labels against many anchored evasions (docs/training.md, row 84)."""
     anchor_from: str | None = None
     """overtake with bc_coef and anchor_families: the SB3 zip (a run's checkpoint, with its
     normalisation beside it) whose actions label the anchored steps instead of ``init_from``'s, e.g.

@@ -245,3 +245,19 @@ def test_seen_only_planner_tracks_until_the_car_has_been_in_view_and_still_passe
         ok[over] = fw.success()[over]
         ended |= over
     assert ok.all() and hidden_steps > 0 and seen_steps > 0
+
+
+def test_a_balanced_imitation_minibatch_is_half_teacher_labels():
+    """--bc-balance: each minibatch half relabelled steps, half the others, however few of either
+    are stored; uniform without it, and while one kind is missing."""
+    import numpy as np
+
+    from racecav.training.imitation_term import minibatch
+
+    rng = np.random.default_rng(0)
+    man = np.zeros(10_000, bool)
+    man[:300] = True  # 3 % relabelled, like yield's brakes among the anchors
+    j = minibatch(rng, man, 2048, balance=True)
+    assert len(j) == 2048 and man[j].sum() == 1024
+    assert 0.01 < man[minibatch(rng, man, 2048, balance=False)].mean() < 0.06
+    assert len(minibatch(rng, np.zeros(50, bool), 64, balance=True)) == 64  # no relabelled step yet

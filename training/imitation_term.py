@@ -49,6 +49,17 @@ log = logging.getLogger("racecav.train")
 FIELDS = ["timesteps", "labels", "loss", "steer_agree", "manoeuvres"]
 
 
+def minibatch(rng: np.random.Generator, man: np.ndarray, size: int, balance: bool) -> np.ndarray:
+    """Indices of one imitation minibatch of ``size`` into the stored labels (``man``: True where a
+    step was relabelled by the teacher): uniform, or with ``balance`` half relabelled steps and half
+    the others (``--bc-balance``; uniform while either kind is missing)."""
+    mine, rest = np.flatnonzero(man), np.flatnonzero(~man)
+    if not balance or not mine.size or not rest.size:
+        return rng.integers(0, len(man), size)
+    half = size // 2
+    return np.concatenate([mine[rng.integers(0, mine.size, half)], rest[rng.integers(0, rest.size, size - half)]])
+
+
 def make_callback(run_dir: Path, tc, fast, seed: int):
     """The SB3 callback that labels and fits (``fast``: the run's FastVecEnv)."""
     from stable_baselines3.common.callbacks import BaseCallback
@@ -161,7 +172,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
             p.set_training_mode(True)
             losses, hits = [], []
             for _ in range(tc.bc_grad_steps):
-                j = self.rng.integers(0, self.size, tc.batch_size)
+                j = minibatch(self.rng, self.man[:self.size], tc.batch_size, tc.bc_balance)
                 latent = p.mlp_extractor.forward_actor(p.extract_features(torch.as_tensor(norm(self.obs[j])),
                                                                           p.pi_features_extractor))
                 loss = tc.bc_coef * imitation_loss(p.action_net(latent), torch.as_tensor(self.act[j]), lo, hi, scale)

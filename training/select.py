@@ -923,7 +923,7 @@ def _ablation_markdown() -> str:
                                                                           "expert", "mirror_families", "mirror_seen", "anchor_families", "mirror_symmetric",
                                                                           "mirror_augment", "steer_bound_coef", "sde_sample_freq", "hidden",
                                                                           "privileged_critic", "hold_until_seen", "hold_families", "hold_through", "anchor_seen", "aux_seen",
-                                                                          "anchor_from")
+                                                                          "anchor_from", "bc_balance")
                if getattr(prev, k) != getattr(tc, k) and k not in ppo_only]
             # a reset of the loaded policy's action std (None: kept as trained, not a change)
             + ([f"init_std {prev.init_std} -> {tc.init_std}"] if tc.init_std not in (None, prev.init_std) else [])) or "-"

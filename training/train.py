@@ -48,7 +48,7 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train dagger`` only."""
-IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families", "anchor_from",
+IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families", "anchor_from", "bc_balance",
                    "anchor_seen", "aux_seen", "expert_horizon_s", "expert_commit_s", "expert_seen", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
