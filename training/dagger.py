@@ -89,7 +89,7 @@ def mirror_teacher(tc, fast):
     teacher = MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
                             relabel=tc.expert, anchor_seen=tc.anchor_seen,
                             teacher_brakes=own_brake(Path(tc.init_from)) is not None)
-    if getattr(tc, "anchor_from", None):
+    if tc.anchor_from:
         anchor = policy_from_checkpoint(Path(tc.anchor_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
         if anchor.obs_dim != policy.obs_dim:
             raise ValueError(f"--anchor-from: {tc.anchor_from} takes {anchor.obs_dim} inputs, the run's view {policy.obs_dim}")

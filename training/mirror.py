@@ -273,18 +273,14 @@ class MirrorTeacher:
         the ego's road at full throttle (relabel track or hold, training/expert.tracking_steer),
         or with the stop-and-look throttle (relabel stop)."""
         mask = self.mirrored()
-        out = self.policy(raw_obs).copy()
-        if self.coast_only:  # a teacher without a brake coasts below 0: not a brake label
-            out[:, 0] = np.maximum(out[:, 0], 0.0)
+        out = _acted(self.policy, raw_obs, self.coast_only)
         if self.anchor_policy is not None:
             anch = self.anchored()
             if anch.any():
-                out[anch] = self.anchor_policy(raw_obs[anch])
-                if self.anchor_coast_only:
-                    out[anch, 0] = np.maximum(out[anch, 0], 0.0)
+                out[anch] = _acted(self.anchor_policy, raw_obs[anch], self.anchor_coast_only)
         if mask.any() and self.relabel == "mirror":
             m = mirror_scans(raw_obs[mask], self.policy.obs_stack)
-            out[mask] = mirror_action(self.policy(m))
+            out[mask] = mirror_action(_acted(self.policy, m, self.coast_only))
         elif mask.any():
             from racecav.training.expert import tracking_steer
 
@@ -293,6 +289,15 @@ class MirrorTeacher:
             throttle = self._stop_throttle[mask] if self.relabel in ("stop", "yield") else np.ones(int(mask.sum()))
             out[mask] = np.stack([throttle, steer[mask]], axis=1)
         return out, mask
+
+
+def _acted(policy, obs: np.ndarray, coast_only: bool) -> np.ndarray:
+    """``policy``'s actions on ``obs`` as labels; ``coast_only``: a policy trained without a brake,
+    whose a_T < 0 (a coast for it) is labelled 0 (a coast under the run's brake too)."""
+    out = np.array(policy(obs), copy=True)
+    if coast_only:
+        out[:, 0] = np.maximum(out[:, 0], 0.0)
+    return out
 
 
 class MirroredPolicy:
