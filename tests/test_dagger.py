@@ -252,12 +252,12 @@ def test_a_balanced_imitation_minibatch_is_half_teacher_labels():
     are stored; uniform without it, and while one kind is missing."""
     import numpy as np
 
-    from racecav.training.imitation_term import minibatch
+    from racecav.training.imitation_term import minibatches
 
     rng = np.random.default_rng(0)
     man = np.zeros(10_000, bool)
     man[:300] = True  # 3 % relabelled, like yield's brakes among the anchors
-    j = minibatch(rng, man, 2048, balance=True)
-    assert len(j) == 2048 and man[j].sum() == 1024
-    assert 0.01 < man[minibatch(rng, man, 2048, balance=False)].mean() < 0.06
-    assert len(minibatch(rng, np.zeros(50, bool), 64, balance=True)) == 64  # no relabelled step yet
+    batches = list(minibatches(rng, man, 2048, True, 3))
+    assert len(batches) == 3 and all(len(j) == 2048 and man[j].sum() == 1024 for j in batches)
+    assert 0.01 < man[next(minibatches(rng, man, 2048, False, 1))].mean() < 0.06
+    assert len(next(minibatches(rng, np.zeros(50, bool), 64, True, 1))) == 64  # no relabelled step yet

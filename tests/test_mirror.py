@@ -470,7 +470,7 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
     latched for the episode; the yield families are never anchored. A teacher trained without a
     brake labels its coasts (a_T < 0) as coasts (0), not as the run's brake."""
     from racecav.common.policy import MODELS_DIR
-    from racecav.training.dagger import own_brake
+    from racecav.training.runs import source_env
     from racecav.training.expert import latch_seen, tracking_steer
     from racecav.training.select import COMMITTED
 
@@ -484,8 +484,8 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
     env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2, brake_below=-0.5), seed=3)
     # the shipped avoid has no brake: its a_T < 0 (a coast) must not become a brake label here
-    assert own_brake(MODELS_DIR / "avoid.zip") is None
-    assert own_brake(COMMITTED / "avoid-gsde-stoplook" / "latest.zip") == -0.5
+    assert source_env(MODELS_DIR / "avoid.zip", "brake_below", None) is None
+    assert source_env(COMMITTED / "avoid-gsde-stoplook" / "latest.zip", "brake_below", None) == -0.5
     teacher = MirrorTeacher(policy, env, yielding, anchors, relabel="yield", teacher_brakes=False)
     (world,) = env.worlds
     env.reset()

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from racecav.training.runs import append_csv, save_checkpoint, truncate_csv
+from racecav.training.runs import append_csv, save_checkpoint, source_env, truncate_csv
 
 log = logging.getLogger("racecav.train")
 
@@ -88,27 +88,14 @@ def mirror_teacher(tc, fast):
     names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
     teacher = MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
                             relabel=tc.expert, anchor_seen=tc.anchor_seen,
-                            teacher_brakes=own_brake(Path(tc.init_from)) is not None)
+                            teacher_brakes=source_env(Path(tc.init_from), "brake_below", None) is not None)
     if tc.anchor_from:
         anchor = policy_from_checkpoint(Path(tc.anchor_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
         if anchor.obs_dim != policy.obs_dim:
             raise ValueError(f"--anchor-from: {tc.anchor_from} takes {anchor.obs_dim} inputs, the run's view {policy.obs_dim}")
-        teacher.set_anchor_policy(anchor, own_brake(Path(tc.anchor_from)) is not None)
+        teacher.set_anchor_policy(anchor, source_env(Path(tc.anchor_from), "brake_below", None) is not None)
     return teacher
 
-
-def own_brake(zip_path: Path) -> float | None:
-    """The brake threshold a checkpoint was trained with: its run's config.json (a run's checkpoint)
-    or its metadata .json beside it (a shipped policy); None without either (no brake)."""
-    import json
-
-    from racecav.training.runs import load_run_config
-
-    run_dir = zip_path.parent.parent if zip_path.parent.name == "checkpoints" else zip_path.parent
-    if (run_dir / "config.json").is_file():
-        return load_run_config(run_dir)[0].env.brake_below
-    meta = zip_path.with_suffix(".json")
-    return json.loads(meta.read_text()).get("brake_below") if meta.is_file() else None
 
 
 class _Stop:

@@ -49,15 +49,17 @@ log = logging.getLogger("racecav.train")
 FIELDS = ["timesteps", "labels", "loss", "steer_agree", "manoeuvres"]
 
 
-def minibatch(rng: np.random.Generator, man: np.ndarray, size: int, balance: bool) -> np.ndarray:
-    """Indices of one imitation minibatch of ``size`` into the stored labels (``man``: True where a
-    step was relabelled by the teacher): uniform, or with ``balance`` half relabelled steps and half
-    the others (``--bc-balance``; uniform while either kind is missing)."""
-    mine, rest = np.flatnonzero(man), np.flatnonzero(~man)
-    if not balance or not mine.size or not rest.size:
-        return rng.integers(0, len(man), size)
+def minibatches(rng: np.random.Generator, man: np.ndarray, size: int, balance: bool, count: int):
+    """``count`` index arrays of ``size`` into the stored labels (``man``: True where a step was
+    relabelled by the teacher): uniform, or with ``balance`` half relabelled steps and half the
+    others (``--bc-balance``; uniform while either kind is missing). The split is made once per fit."""
+    mine, rest = (np.flatnonzero(man), np.flatnonzero(~man)) if balance else ((), ())
     half = size // 2
-    return np.concatenate([mine[rng.integers(0, mine.size, half)], rest[rng.integers(0, rest.size, size - half)]])
+    for _ in range(count):
+        if len(mine) and len(rest):
+            yield np.concatenate([mine[rng.integers(0, len(mine), half)], rest[rng.integers(0, len(rest), size - half)]])
+        else:
+            yield rng.integers(0, len(man), size)
 
 
 def make_callback(run_dir: Path, tc, fast, seed: int):
@@ -171,8 +173,7 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 self.aux_opt = torch.optim.Adam(self.aux_head.parameters(), lr=1e-3)
             p.set_training_mode(True)
             losses, hits = [], []
-            for _ in range(tc.bc_grad_steps):
-                j = minibatch(self.rng, self.man[:self.size], tc.batch_size, tc.bc_balance)
+            for j in minibatches(self.rng, self.man[:self.size], tc.batch_size, tc.bc_balance, tc.bc_grad_steps):
                 latent = p.mlp_extractor.forward_actor(p.extract_features(torch.as_tensor(norm(self.obs[j])),
                                                                           p.pi_features_extractor))
                 loss = tc.bc_coef * imitation_loss(p.action_net(latent), torch.as_tensor(self.act[j]), lo, hi, scale)

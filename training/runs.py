@@ -15,6 +15,24 @@ RECORD_KEYS = ("git_commit", "started", "total_steps")
 """Keys of a run's config.json that describe the run, not its settings."""
 
 
+def run_dir_of(zip_path: Path) -> Path:
+    """The run folder of a checkpoint (``<run>/checkpoints/step_N.zip``) or of ``<run>/latest.zip``."""
+    zip_path = Path(zip_path)
+    return zip_path.parent.parent if zip_path.parent.name == "checkpoints" else zip_path.parent
+
+
+def source_env(path: Path, key: str, default):
+    """An env setting a policy zip was trained with: its metadata (a shipped policy's .json),
+    else its run's config.json (a checkpoint), else ``default``."""
+    meta = Path(path).with_suffix(".json")
+    if meta.is_file() and key in (m := json.loads(meta.read_text())):
+        return m[key]
+    run_dir = run_dir_of(path)
+    if (run_dir / "config.json").is_file():
+        return getattr(load_run_config(run_dir)[0].env, key)
+    return default
+
+
 def load_run_config(run_dir: Path):
     """(TrainConfig, record) of a run folder's config.json; reads the flat format of runs made
     before TrainConfig existed (training/checkpoints/*/config.json)."""

@@ -33,7 +33,7 @@ from pathlib import Path
 from racecav.common import registry
 from racecav.common.lidar import VIEWS
 from racecav.training import targets
-from racecav.training.runs import load_run_config
+from racecav.training.runs import load_run_config, run_dir_of
 
 log = logging.getLogger("racecav.train")
 
@@ -131,7 +131,7 @@ def checkpoint_policy(zip_path: Path):
     zip_path = Path(zip_path)
     if not zip_path.is_file():
         raise FileNotFoundError(f"checkpoint {zip_path}: no such file")
-    run_dir = zip_path.parent.parent if zip_path.parent.name == "checkpoints" else zip_path.parent
+    run_dir = run_dir_of(zip_path)
     if not (run_dir / "config.json").is_file():
         raise FileNotFoundError(f"checkpoint {zip_path}: no run record {run_dir / 'config.json'} (its env settings)")
     env = load_run_config(run_dir)[0].env
@@ -633,7 +633,7 @@ def draw_paths(args, cfg) -> int:
         paths[f"{sc} ({100 * r['success']:.0f} %)"] = r["paths"]
         rates.append(f"{sc} {100 * r['success']:.0f} %")
     spec = Path(args.policy)  # a checkpoint's title names its run: <run>/<step>
-    run = spec.parent.parent if spec.parent.name == "checkpoints" else spec.parent
+    run = run_dir_of(spec)
     out = _plot_paths(f"{run.name}/{spec.stem}" if spec.suffix == ".zip" else spec.stem, paths, args.out)
     print(f"wrote {out}: {', '.join(rates)} of {args.trials} trials (selection seeds)")
     return 0
@@ -1926,7 +1926,7 @@ def _ablation_markdown() -> str:
           "(training/mirror.MirrorTeacher.anchored) labels their approach like yield's (tracking at full throttle "
           "until a car has been in the scan) and every step after it with the starting policy's own action (row 31's "
           "evasions; its coasts, a_T < 0 without a brake, are labelled as coasts, not as the run's brake: "
-          "training/dagger.own_brake). Row 81's flags are row 80's plus the anchors, from row 31's 5 M: 10.0 M samples "
+          "training/runs.source_env). Row 81's flags are row 80's plus the anchors, from row 31's 5 M: 10.0 M samples "
           "in 27 min; its 4 evaluated checkpoints (2.5-10 M): conflict-timed 6-11 / 58-69 / 8-91 %, paper-timed 85-100 / "
           "57-68 / 58-100 %, suite 29-52 % (crossings from the left 11-51 %), free column 79-97 %, scores 0.47-0.62. "
           "Row 83 (avoid-gsde-yield-keep) starts from row 80's 6 M, which has yield's answer, and labels the anchors "

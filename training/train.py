@@ -37,7 +37,7 @@ from pathlib import Path
 from racecav.common.bench import git_commit
 from racecav.common.lidar import VIEWS
 from racecav.training.mirror import RELABELS
-from racecav.training.runs import load_run_config, save_checkpoint, truncate_csv
+from racecav.training.runs import load_run_config, save_checkpoint, source_env, truncate_csv
 
 log = logging.getLogger("racecav.train")
 
@@ -503,21 +503,9 @@ def init_normalization(venv, tc):
     return venv
 
 
-def _source_env(path: Path, key: str, default):
-    """An env setting a policy zip was trained with: its metadata (a shipped policy's .json),
-    else its run's config.json (a checkpoint), else ``default``."""
-    meta = path.with_suffix(".json")
-    if meta.is_file() and key in (m := json.loads(meta.read_text())):
-        return m[key]
-    run_dir = path.parent.parent if path.parent.name == "checkpoints" else path.parent  # a checkpoint or latest.zip
-    if (run_dir / "config.json").is_file():
-        return getattr(load_run_config(run_dir)[0].env, key)
-    return default
-
-
 def source_view(path: Path):
     """The lidar view a policy zip was trained on (the paper's unless it says otherwise)."""
-    return VIEWS[_source_env(path, "lidar", "paper")]
+    return VIEWS[source_env(path, "lidar", "paper")]
 
 
 def restride(w, n_rays: int, k: float):
@@ -614,7 +602,7 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
                 src[k] = torch.as_tensor(map_inputs(v.numpy(), src_view, view, n_stack))
             if src[k].shape != dst[k].shape:
                 raise ValueError(f"--init-from {path}: {k} has shape {tuple(v.shape)}, the model {tuple(dst[k].shape)}")
-    src_stride = int(_source_env(path, "obs_stride", 1))
+    src_stride = int(source_env(path, "obs_stride", 1))
     if src_stride != stride:
         for k in [k for k in src if k.endswith("net.0.weight")]:
             src[k] = torch.as_tensor(restride(src[k].numpy(), view.n_rays, stride / src_stride), dtype=src[k].dtype)
