@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -83,6 +84,14 @@ def test_resume_continues_run(tmp_path):
     # normalisation statistics continued too
     assert _obs_count(run / "latest.vecnorm.pkl") > count0 + 500
     assert json.loads((run / "config.json").read_text())["seed"] == 3
+
+    # a run resumed from its committed record (training/checkpoints/<run>/: latest.* and the
+    # CSVs, no checkpoints/ folder) goes on too, writing its checkpoints into a new folder
+    record = tmp_path / "record"
+    shutil.copytree(run, record, ignore=shutil.ignore_patterns("checkpoints"))
+    assert _train(record, 1152, "--resume") == 0
+    assert json.loads((record / "latest.json").read_text())["timesteps"] == 1152
+    assert (record / "checkpoints" / "step_000001152.zip").is_file()
 
 
 @pytest.mark.timeout(600)

@@ -64,6 +64,8 @@ def save_checkpoint(run_dir: Path, model, vec_normalize, wall_s: float, final: b
     # truncated step_*.zip for select or --resume to trip over; the normalisation first, so that a
     # step_*.zip never stands without its own
     partial = ck.parent / "partial"
+    # a run resumed from its committed record (latest.* only) has no checkpoints/ folder yet
+    ck.parent.mkdir(parents=True, exist_ok=True)
     if vec_normalize is not None:
         vec_normalize.save(str(partial.with_suffix(".vecnorm.pkl")))
         os.replace(partial.with_suffix(".vecnorm.pkl"), ck.with_suffix(".vecnorm.pkl"))
