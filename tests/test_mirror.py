@@ -533,3 +533,45 @@ def test_anchor_from_is_refused_without_anchors_or_file(tmp_path, capsys):
     assert "--anchor-families" in capsys.readouterr().out
     assert main(base + ["--anchor-from", str(tmp_path / "x.zip"), "--bc-coef", "0.1", "--anchor-families", "head-on"]) == 2
     assert "no such file" in capsys.readouterr().out
+
+
+def test_yield_family_also_anchored_waits_until_its_car_has_stopped(tmp_path):
+    """--expert yield with a family in both --mirror-families and --anchor-families (braking): the
+    yield labels until a car in the ego's scan near the crossing has stopped, then the policy's own
+    action for the rest of the episode; a family only in --mirror-families is never released."""
+    from racecav.evaluation import suite as S
+    from racecav.training.mirror import APPROACH_M, STOPPED_V
+
+    ff = S.load_families("conflicts")
+    ff = ff.model_copy(update={"families": [f for f in ff.families if f.name in ("braking", "cross-left")]})
+    S.generate(ff, tmp_path / "suite", n_test=2, n_train=16, seed=5, progress=False)
+    policy = load_policy("avoid")
+    env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(tmp_path / "suite"), scenario_share=1.0,
+                                      n_obstacles=0, lidar="wide", obs_stack=2, brake_below=-0.5), seed=4)
+    teacher = MirrorTeacher(policy, env, ["braking", "cross-left"], ["braking"], relabel="yield",
+                            teacher_brakes=False)
+    (world,) = env.worlds
+    env.reset()
+    stopped = np.zeros(env.num_envs, bool)  # the release, latched here as the docstring says
+    released = braked = 0
+    for _ in range(120):
+        stopped[world.time < 1e-9] = False
+        raw = env._stacked()
+        act, mask = teacher.labels(raw)
+        anch = teacher.anchored()
+        fam = np.array([f.split("/")[-1] for f in world.scenario_families])[world.scenario_index]
+        d = np.hypot(world.x[:, 1:], world.y[:, 1:] - world.start_pose[:, 1:2])
+        now = ((d < APPROACH_M) & (world.v[:, 1:] < STOPPED_V) & world.seen_by_agent(np.arange(env.num_envs))).any(axis=1)
+        short = world.x[:, 0] < 0.0
+        stopped |= now & short & (fam == "braking")
+        brk = (fam == "braking") & short
+        assert np.array_equal(anch[brk], stopped[brk])  # anchored exactly from the stop on
+        assert not (mask & anch).any() and not anch[fam == "cross-left"].any()
+        own = policy(raw)
+        own[:, 0] = np.maximum(own[:, 0], 0.0)
+        assert np.array_equal(act[anch], own[anch])
+        released += int((anch & brk).sum())
+        braked += int((mask & brk & (act[:, 0] < 0)).sum())
+        env.step(act)
+    assert released > 0 and braked > 0  # both halves of the family's label were met
+    env.close()

@@ -52,6 +52,7 @@ LEFT_M = 0.3   # m: ... and this far to the ego's left makes the scene a mirrore
 # wait while a car in the ego's scan is within BOX_M of the conflict point or within APPROACH_M
 # and closing on it. The values of the fast-world probe in docs/training.md (rows 78-79).
 STOP_M, HALT_V, BOX_M, APPROACH_M = 2.5, 0.15, 0.8, 3.5
+STOPPED_V = 0.05  # m/s: a car below it has stopped (yield's busy test counts it as moving above)
 
 
 class MirrorTeacher:
@@ -91,6 +92,11 @@ class MirrorTeacher:
         action after it (:meth:`anchored`). Why: the approach scans of every intersection family
         are the same, so one label fits all of them; the families yield does not answer (a car
         ahead, oncoming or turning) keep the starting policy's evasion once that car is in view.
+        A family in both ``families`` and ``anchor_families`` (e.g. ``braking``: a crossing car
+        that stops across the ego's road) is yield's until a car in the ego's scan near the
+        crossing has come to a stop, then anchored for the episode. Why: until it stops such a
+        car looks like a crossing one (the same label: wait), and a stopped car does not clear
+        by waiting (the starting policy's evasion, as for the stopped family).
     :param anchor_seen: relabel hold: :meth:`anchored` also returns every step of a ``families``
         scenario after its hold ended (a car seen, or the ego past the crossing's centre), whose
         label is the policy's own action: the answers after the car is in view are held where they
@@ -133,6 +139,9 @@ class MirrorTeacher:
         # stop: per world, latched per episode: the ego has come down to HALT_V / has been let go
         self._halted = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
         self._go = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
+        # yield: the families in both lists, and per world (latched per episode) a seen car stopped
+        self._until_stop = self._per_file(self.families & self.anchor_families)
+        self._stalled = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
 
     def set_anchor_policy(self, policy, teacher_brakes: bool) -> None:
         """Label the :meth:`anchored` steps with ``policy``'s actions instead of the teacher's
@@ -203,7 +212,13 @@ class MirrorTeacher:
             halted[new] = go[new] = False
             x, v = w.x[:, 0], w.v[:, 0]
             short = m[w.scenario_index] & (x < 0.0)
-            if self.relabel == "yield":  # no latches: brake exactly while a seen car is busy
+            if self.relabel == "yield":  # brake exactly while a seen car is busy
+                stalled = self._stalled[k]
+                stalled[new] = False
+                look = np.flatnonzero(short & ~stalled & self._until_stop[k][w.scenario_index])
+                if look.size:
+                    stalled[look] = self._stopped(w, look)
+                short &= ~stalled  # from here the family's anchor (anchored())
                 brake = np.zeros(w.n_envs, bool)
                 look = np.flatnonzero(short)
                 if look.size:
@@ -228,9 +243,18 @@ class MirrorTeacher:
         dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
         d = np.hypot(dx, dy)
         closing = dx * np.cos(w.yaw[look, 1:]) + dy * np.sin(w.yaw[look, 1:]) < 0.0
-        busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > 0.05))
+        busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > STOPPED_V))
         busy &= w.seen_by_agent(look)
         return busy.any(axis=1)
+
+    @staticmethod
+    def _stopped(w, look: np.ndarray) -> np.ndarray:
+        """(len(look),) bool: a car in the ego's scan within APPROACH_M of the conflict point that
+        has come to a stop (it was given a speed: the braking family's, not a parked car)."""
+        dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
+        stopped = (np.hypot(dx, dy) < APPROACH_M) & (w.v[look, 1:] < STOPPED_V)
+        stopped &= w.seen_by_agent(look)
+        return stopped.any(axis=1)
 
     def mirrored(self) -> np.ndarray:
         """(N,) bool: the worlds whose current episode is a scenario of a mirrored family and
