@@ -536,7 +536,9 @@ class TrainConfig(Section):
     near on the ego's right are labelled with the teacher's own action (e.g. cross-right, the
     mirror pair), besides the anchor steps; with expert yield: families whose approach gets yield's
     label (tracking at full throttle until a car has been in the ego's scan) and whose steps after it
-    the teacher's own action; training/mirror.MirrorTeacher.anchored."""
+    the teacher's own action; a family also in mirror_families is yield's until a car in the ego's
+    scan has stopped, anchored from there (braking: docs/training.md, row 85);
+    training/mirror.MirrorTeacher.anchored."""
     bc_balance: bool = False
     """overtake with bc_coef: each imitation minibatch half relabelled steps (the teacher's labels) and
     half the others (anchors, spaced labels), whatever their shares of the stored labels; e.g. yield's

@@ -250,7 +250,7 @@ class MirrorTeacher:
     @staticmethod
     def _stopped(w, look: np.ndarray) -> np.ndarray:
         """(len(look),) bool: a car in the ego's scan within APPROACH_M of the conflict point that
-        has come to a stop (it was given a speed: the braking family's, not a parked car)."""
+        has come to a stop (asked only for the families in both lists, whose cars start moving)."""
         dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
         stopped = (np.hypot(dx, dy) < APPROACH_M) & (w.v[look, 1:] < STOPPED_V)
         stopped &= w.seen_by_agent(look)
