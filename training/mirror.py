@@ -237,11 +237,17 @@ class MirrorTeacher:
         return np.concatenate(lab), np.concatenate(thr)
 
     @staticmethod
+    def _from_conflict(w, look: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(dx, dy, distance), each (len(look), n_actors): the actors from the conflict point (x = 0
+        on the ego's road, the scenario convention)."""
+        dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
+        return dx, dy, np.hypot(dx, dy)
+
+    @staticmethod
     def _busy(w, look: np.ndarray) -> np.ndarray:
         """(len(look),) bool: a car in the ego's scan within BOX_M of the conflict point, or within
         APPROACH_M, moving and closing on it (the scenario's conflict point: x = 0 on the ego's road)."""
-        dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
-        d = np.hypot(dx, dy)
+        dx, dy, d = MirrorTeacher._from_conflict(w, look)
         closing = dx * np.cos(w.yaw[look, 1:]) + dy * np.sin(w.yaw[look, 1:]) < 0.0
         busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > STOPPED_V))
         busy &= w.seen_by_agent(look)
@@ -251,8 +257,7 @@ class MirrorTeacher:
     def _stopped(w, look: np.ndarray) -> np.ndarray:
         """(len(look),) bool: a car in the ego's scan within APPROACH_M of the conflict point that
         has come to a stop (asked only for the families in both lists, whose cars start moving)."""
-        dx, dy = w.x[look, 1:], w.y[look, 1:] - w.start_pose[look, 1:2]
-        stopped = (np.hypot(dx, dy) < APPROACH_M) & (w.v[look, 1:] < STOPPED_V)
+        stopped = (MirrorTeacher._from_conflict(w, look)[2] < APPROACH_M) & (w.v[look, 1:] < STOPPED_V)
         stopped &= w.seen_by_agent(look)
         return stopped.any(axis=1)
 
