@@ -575,3 +575,58 @@ def test_yield_family_also_anchored_waits_until_its_car_has_stopped(tmp_path):
         env.step(act)
     assert released > 0 and braked > 0  # both halves of the family's label were met
     env.close()
+
+
+def test_yield_follows_a_car_that_turned_in_ahead_and_waits_for_an_oncoming_one_only_where_it_turns(tmp_path, monkeypatch):
+    """--expert yield on the turning family, driven by its own labels: the car that turns into the
+    ego's lane ahead (right_into) is followed (the label is never above the gap's speed, wherever
+    the ego is) and the oncoming car that turns across (left_across) is waited for only near the
+    crossing; both variants pass, where the straight car at full throttle does not. Without the
+    follow the turned-in car is rear-ended; with the oncoming car busy from APPROACH_M out the ego
+    waits for it to crawl up (synchronised to the stopped ego) and the episode ends first."""
+    from racecav.evaluation import suite as S
+    from racecav.training import mirror as M
+    from racecav.training.select import ConstantAction
+
+    ff = S.load_families("conflicts")
+    ff = ff.model_copy(update={"families": [f for f in ff.families if f.name == "turning"]})
+    S.generate(ff, tmp_path / "suite", n_test=2, n_train=40, seed=6, progress=False)
+
+    def drive(teacher_on: bool) -> tuple[np.ndarray, np.ndarray]:
+        env = FastVecEnv(config=EnvConfig(n_envs=64, scenarios=str(tmp_path / "suite"), scenario_share=1.0,
+                                          n_obstacles=0, lidar="wide", obs_stack=2, brake_below=-0.5), seed=3)
+        teacher = MirrorTeacher(ConstantAction(1.0), env, ["turning"], relabel="yield") if teacher_on else None
+        (world,) = env.worlds
+        env.reset()
+        into = np.array([abs(world.scenarios[k].obstacles[0].yaw_deg - 90.0) < 1.0 for k in world.scenario_index])
+        done, ok = np.zeros(env.num_envs, bool), np.zeros(env.num_envs, bool)
+        while not done.all():
+            if teacher is None:
+                act = np.tile(np.array([1.0, 0.0], np.float32), (env.num_envs, 1))
+            else:
+                act, mask = teacher.labels(env._stacked())
+                past = mask & (world.x[:, 0] >= 0.0) & ~done  # labelled past the crossing: only to follow
+                if past.any():
+                    following, t_follow = M.MirrorTeacher._follow(world, np.flatnonzero(past))
+                    assert following.all() and np.allclose(act[past, 0], t_follow)
+            _obs, _r, d, infos = env.step(act.astype(np.float32))
+            for i in np.flatnonzero(d & ~done):
+                ok[i] = infos[i].get("is_success", False)
+            done |= d
+        env.close()
+        return into, ok
+
+    into, ok = drive(True)
+    assert into.sum() >= 16 and (~into).sum() >= 16  # both variants drawn
+    assert ok[into].mean() >= 0.7 and ok[~into].mean() >= 0.9, (ok[into].mean(), ok[~into].mean())
+    _into, straight = drive(False)
+    assert straight.mean() <= 0.1  # a benchmark: the straight car at full throttle loses it
+
+    monkeypatch.setattr(M.MirrorTeacher, "_follow", staticmethod(lambda w, look: (np.zeros(len(look), bool),
+                                                                                  np.ones(len(look)))))
+    into, ok = drive(True)
+    assert ok[into].mean() <= 0.3  # rear-ended without the follow
+    monkeypatch.undo()
+    monkeypatch.setattr(M, "ONCOMING_M", M.APPROACH_M)
+    into, ok = drive(True)
+    assert ok[~into].mean() <= 0.5  # waits too long for the oncoming car

@@ -53,6 +53,11 @@ LEFT_M = 0.3   # m: ... and this far to the ego's left makes the scene a mirrore
 # and closing on it. The values of the fast-world probe in docs/training.md (rows 78-79).
 STOP_M, HALT_V, BOX_M, APPROACH_M = 2.5, 0.15, 0.8, 3.5
 STOPPED_V = 0.05  # m/s: a car below it has stopped (yield's busy test counts it as moving above)
+# yield follows a car in the ego's scan that is ahead in its lane and going its way (e.g. one that
+# turned into the lane ahead): within FOLLOW_M ahead and LANE_M aside, headings within 60 deg; the
+# speed it asks for: the car's plus FOLLOW_GAIN per metre of gap beyond FOLLOW_GAP_M (centres).
+FOLLOW_M, LANE_M, FOLLOW_GAP_M, FOLLOW_GAIN = 3.0, 0.4, 0.8, 2.0
+ONCOMING_M, ALONG_SIN = 2.0, 0.2  # yield's reach for a car along the ego's road (|sin| of its heading)
 
 
 class MirrorTeacher:
@@ -86,7 +91,10 @@ class MirrorTeacher:
         yield: stop and look without the stop before the crossing: full throttle along the road,
         the brake only while a car *in the ego's scan* is in the crossing or closing on it (so
         the label changes only where the scan shows a car: an intersection with no car in view
-        is driven through at full throttle, like the paper-timed crossings a fast ego passes first).
+        is driven through at full throttle, like the paper-timed crossings a fast ego passes first),
+        and, wherever the ego is, the speed of a gap behind a car in its scan that is ahead in its
+        lane and going its way (:meth:`_follow`: a car that turned into the lane ahead). A car along
+        the ego's road, e.g. an oncoming one in the other lane, is busy only within ONCOMING_M.
         Its ``anchor_families`` get the same approach and keep their own answers: tracking at full
         throttle until a car has been in the ego's scan (short of the crossing), the policy's own
         action after it (:meth:`anchored`). Why: the approach scans of every intersection family
@@ -223,8 +231,15 @@ class MirrorTeacher:
                 look = np.flatnonzero(short)
                 if look.size:
                     brake[look] = self._busy(w, look)
+                throttle = np.where(brake, -1.0, 1.0)
+                # a car ahead in the lane going the ego's way is followed wherever the ego is
+                look = np.flatnonzero(m[w.scenario_index] & ~stalled)
+                if look.size:
+                    follow, t_follow = self._follow(w, look)
+                    short[look[follow]] = True
+                    throttle[look[follow]] = np.minimum(throttle[look[follow]], t_follow[follow])
                 lab.append(short)
-                thr.append(np.where(brake, -1.0, 1.0))
+                thr.append(throttle)
                 continue
             near = x >= -STOP_M
             halted |= near & (v < HALT_V)
@@ -246,12 +261,41 @@ class MirrorTeacher:
     @staticmethod
     def _busy(w, look: np.ndarray) -> np.ndarray:
         """(len(look),) bool: a car in the ego's scan within BOX_M of the conflict point, or within
-        APPROACH_M, moving and closing on it (the scenario's conflict point: x = 0 on the ego's road)."""
+        APPROACH_M, moving and closing on it (the scenario's conflict point: x = 0 on the ego's road).
+        A car along the ego's road (an oncoming one in the other lane, e.g. the turning family's
+        left_across before its turn) is busy only within ONCOMING_M: it may turn across there."""
         dx, dy, d = MirrorTeacher._from_conflict(w, look)
-        closing = dx * np.cos(w.yaw[look, 1:]) + dy * np.sin(w.yaw[look, 1:]) < 0.0
-        busy = (d < BOX_M) | (closing & (d < APPROACH_M) & (w.v[look, 1:] > STOPPED_V))
+        sin = np.sin(w.yaw[look, 1:])
+        closing = dx * np.cos(w.yaw[look, 1:]) + dy * sin < 0.0
+        reach = np.where(np.abs(sin) < ALONG_SIN, ONCOMING_M, APPROACH_M)
+        busy = (d < BOX_M) | (closing & (d < reach) & (w.v[look, 1:] > STOPPED_V))
         busy &= w.seen_by_agent(look)
         return busy.any(axis=1)
+
+    @staticmethod
+    def _follow(w, look: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(following (len(look),) bool, throttle label (len(look),)): the worlds whose ego has a
+        car in its scan ahead in its lane going its way (within FOLLOW_M), and the label that keeps
+        its distance: the throttle of the speed the gap asks for, the brake when the ego is more
+        than 0.2 m/s above that speed. Why: a car that turned into the ego's lane ahead (the
+        turning family's right_into) is past the crossing and not busy, and full throttle after
+        it is a rear-end collision."""
+        from racecav.common.vehicle import throttle_for_speed
+
+        dx, dy = w.x[look, 1:] - w.x[look, :1], w.y[look, 1:] - w.y[look, :1]
+        c, s = np.cos(w.yaw[look, :1]), np.sin(w.yaw[look, :1])
+        ahead, aside = c * dx + s * dy, -s * dx + c * dy
+        same_way = np.cos(w.yaw[look, 1:] - w.yaw[look, :1]) > 0.5
+        lead = (ahead > 0.0) & (ahead < FOLLOW_M) & (np.abs(aside) < LANE_M) & same_way
+        lead &= w.seen_by_agent(look)
+        gap = np.where(lead, ahead, np.inf).min(axis=1)
+        k = np.where(lead, ahead, np.inf).argmin(axis=1)
+        v_lead = w.v[look, 1:][np.arange(len(look)), k]
+        want = np.maximum(v_lead + FOLLOW_GAIN * (gap - FOLLOW_GAP_M), 0.0)
+        throttle = np.where(w.v[look, 0] > want + 0.2, -1.0,
+                            throttle_for_speed(np.minimum(want, w.car.v_max), w.car, w.car.agent_speed_scale))
+        following = np.isfinite(gap)
+        return following, np.where(following, throttle, 1.0)
 
     @staticmethod
     def _stopped(w, look: np.ndarray) -> np.ndarray:
