@@ -630,3 +630,40 @@ def test_yield_follows_a_car_that_turned_in_ahead_and_waits_for_an_oncoming_one_
     monkeypatch.setattr(M, "ONCOMING_M", M.APPROACH_M)
     into, ok = drive(True)
     assert ok[~into].mean() <= 0.5  # waits too long for the oncoming car
+
+
+def test_anchor_policy_sees_its_own_stride_from_the_envs_history(tmp_path):
+    """--anchor-from a policy trained on consecutive scans, in a run with a longer --obs-stride: its
+    anchored labels are its actions on its own view (the env's history, scans 1 period apart), not
+    on the run's; a view older than the history is refused."""
+    from racecav.training.select import COMMITTED, checkpoint_policy
+
+    folder = tmp_path / "mix"
+    folder.mkdir()
+    yielding, anchors = ["conflict-left-to-right"], ["head-to-head"]
+    for name in yielding + anchors:
+        shutil.copy(SCENARIOS_DIR / f"{name}.toml", folder / f"{name}.toml")
+    anchor = checkpoint_policy(COMMITTED / "avoid-gsde-flow120" / "checkpoints" / "step_005005312.zip")
+    assert (anchor.obs_stack, anchor.obs_stride) == (2, 1)
+    env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
+                                      lidar="wide", obs_stack=2, obs_stride=4, brake_below=-0.5), seed=3)
+    teacher = MirrorTeacher(anchor, env, yielding, anchors, relabel="yield", teacher_brakes=False)
+    teacher.set_anchor_policy(anchor, teacher_brakes=False)
+    env.reset()
+    differs = checked = 0
+    for _ in range(40):
+        raw = env._stacked()
+        own_view = env.stacked_view(2, 1)
+        assert np.array_equal(own_view[:, :raw.shape[1] // 2], raw[:, :raw.shape[1] // 2])  # the newest scan
+        act, mask = teacher.labels(raw)
+        anch = teacher.anchored()
+        want = anchor(own_view)
+        want[:, 0] = np.maximum(want[:, 0], 0.0)
+        assert np.allclose(act[anch], want[anch], atol=1e-5)  # (a batch of another size: float rounding)
+        checked += int(anch.sum())
+        differs += int((np.abs(anchor(raw)[anch] - anchor(own_view)[anch]) > 1e-3).any(axis=1).sum())
+        env.step(act)
+    assert checked > 0 and differs > 0  # the two views give other actions: the test can tell them apart
+    with pytest.raises(ValueError, match="history"):
+        env.stacked_view(3, 4)
+    env.close()

@@ -90,9 +90,12 @@ def mirror_teacher(tc, fast):
                             relabel=tc.expert, anchor_seen=tc.anchor_seen,
                             teacher_brakes=source_env(Path(tc.init_from), "brake_below", None) is not None)
     if tc.anchor_from:
-        anchor = policy_from_checkpoint(Path(tc.anchor_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
-        if anchor.obs_dim != policy.obs_dim:
-            raise ValueError(f"--anchor-from: {tc.anchor_from} takes {anchor.obs_dim} inputs, the run's view {policy.obs_dim}")
+        # in its own stack and stride (MirrorTeacher.labels builds that view from the env's history)
+        a_stack, a_stride = (source_env(Path(tc.anchor_from), k, 1) for k in ("obs_stack", "obs_stride"))
+        anchor = policy_from_checkpoint(Path(tc.anchor_from), a_stack, env.brake_below, env.lidar, a_stride)
+        if anchor.obs_dim // a_stack != policy.obs_dim // env.obs_stack:
+            raise ValueError(f"--anchor-from: {tc.anchor_from} reads scans of {anchor.obs_dim // a_stack} rays, "
+                             f"the run's view {policy.obs_dim // env.obs_stack}")
         teacher.set_anchor_policy(anchor, source_env(Path(tc.anchor_from), "brake_below", None) is not None)
     return teacher
 

@@ -349,8 +349,11 @@ class MirrorTeacher:
         out = _acted(self.policy, raw_obs, self.coast_only)
         if self.anchor_policy is not None:
             anch = self.anchored()
-            if anch.any():
-                out[anch] = _acted(self.anchor_policy, raw_obs[anch], self.anchor_coast_only)
+            if anch.any():  # in its own view: its stack and stride may not be the run's
+                ap, env = self.anchor_policy, self.fast
+                own = getattr(ap, "obs_stack", env.n_stack), getattr(ap, "obs_stride", env.stride)
+                view = raw_obs if own == (env.n_stack, env.stride) else env.stacked_view(*own)
+                out[anch] = _acted(ap, view[anch], self.anchor_coast_only)
         if mask.any() and self.relabel == "mirror":
             m = mirror_scans(raw_obs[mask], self.policy.obs_stack)
             out[mask] = mirror_action(_acted(self.policy, m, self.coast_only))

@@ -232,6 +232,17 @@ class FastVecEnv(VecEnv):
             return np.concatenate([obs, np.concatenate([privileged_features(w) for w in self.worlds])], axis=1)
         return obs.copy()
 
+    def stacked_view(self, n_stack: int, stride: int) -> np.ndarray:
+        """The raw scans as a policy with its own ``n_stack`` and ``stride`` sees them (e.g. a frozen
+        teacher trained with consecutive scans labelling a run with a longer stride), from the
+        history this env keeps.
+
+        :raises ValueError: when that view needs scans older than the history holds."""
+        if (n_stack - 1) * stride + 1 > self._stack.shape[1]:
+            raise ValueError(f"a stack of {n_stack} scans {stride} apart needs more history than this env's "
+                             f"{self.n_stack} scans {self.stride} apart")
+        return self._stack[:, ::stride][:, :n_stack].reshape(self.num_envs, -1).copy()
+
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
 
