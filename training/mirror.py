@@ -58,6 +58,12 @@ STOPPED_V = 0.05  # m/s: a car below it has stopped (yield's busy test counts it
 # speed it asks for: the car's plus FOLLOW_GAIN per metre of gap beyond FOLLOW_GAP_M (centres).
 FOLLOW_M, LANE_M, FOLLOW_GAP_M, FOLLOW_GAIN = 3.0, 0.4, 0.8, 2.0
 ONCOMING_M, ALONG_SIN = 2.0, 0.2  # yield's reach for a car along the ego's road (|sin| of its heading)
+# yield steers round a car in its scan that blocks its path ahead within DODGE_M, oncoming or
+# stopped: to DODGE_CLEAR_M beside the car's extent, on the side away from it unless the road
+# (ROAD_HALF_M from its centre line, y = 0) has no room there; lateral gain DODGE_GAIN rad per m
+# or within DODGE_S of closing; steering DODGE_STEER_GAIN rad per rad of heading error (a firmer
+# hand than the tracking steer's: the manoeuvre is short)
+DODGE_M, DODGE_S, DODGE_CLEAR_M, ROAD_HALF_M, DODGE_GAIN, DODGE_STEER_GAIN = 3.5, 1.6, 0.35, 0.95, 1.5, 2.0
 
 
 class MirrorTeacher:
@@ -209,11 +215,13 @@ class MirrorTeacher:
         """(labelled (N,), throttle label (N,)), relabel stop or yield: the worlds of ``families``
         whose ego is short of the crossing's centre, and the throttle there (+1 go, -1 brake).
         Call it at every step: the latches follow each world's episode."""
-        lab, thr = [], []
+        lab, thr, steers = [], [], []
         for k, (w, m) in enumerate(zip(self.fast.worlds, self._mirrored)):
+            steer = np.full(w.n_envs, np.nan)  # NaN: the road's tracking steer
             if m is None:
                 lab.append(np.zeros(w.n_envs, bool))
                 thr.append(np.ones(w.n_envs))
+                steers.append(steer)
                 continue
             new = w.time < 1e-9  # a new episode: nothing latched
             halted, go = self._halted[k], self._go[k]
@@ -238,8 +246,14 @@ class MirrorTeacher:
                     follow, t_follow = self._follow(w, look)
                     short[look[follow]] = True
                     throttle[look[follow]] = np.minimum(throttle[look[follow]], t_follow[follow])
+                    # a car that blocks the path (oncoming or stopped) is passed, not waited for
+                    dodge, d_steer = self._dodge(w, look)
+                    short[look[dodge]] = True
+                    throttle[look[dodge]] = 1.0
+                    steer[look[dodge]] = d_steer[dodge]
                 lab.append(short)
                 thr.append(throttle)
+                steers.append(steer)
                 continue
             near = x >= -STOP_M
             halted |= near & (v < HALT_V)
@@ -249,6 +263,8 @@ class MirrorTeacher:
             go |= x >= 0.0
             lab.append(short)
             thr.append(np.where(~near | go, 1.0, -1.0))
+            steers.append(steer)
+        self._steer = np.concatenate(steers)
         return np.concatenate(lab), np.concatenate(thr)
 
     @staticmethod
@@ -268,7 +284,8 @@ class MirrorTeacher:
         sin = np.sin(w.yaw[look, 1:])
         closing = dx * np.cos(w.yaw[look, 1:]) + dy * sin < 0.0
         reach = np.where(np.abs(sin) < ALONG_SIN, ONCOMING_M, APPROACH_M)
-        busy = (d < BOX_M) | (closing & (d < reach) & (w.v[look, 1:] > STOPPED_V))
+        # a stopped car does not clear by waiting: it is steered round (_dodge), not waited for
+        busy = ((d < BOX_M) | (closing & (d < reach))) & (w.v[look, 1:] > STOPPED_V)
         busy &= w.seen_by_agent(look)
         return busy.any(axis=1)
 
@@ -296,6 +313,46 @@ class MirrorTeacher:
                             throttle_for_speed(np.minimum(want, w.car.v_max), w.car, w.car.agent_speed_scale))
         following = np.isfinite(gap)
         return following, np.where(following, throttle, 1.0)
+
+    @staticmethod
+    def _dodge(w, look: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(dodging (len(look),) bool, steer action (len(look),)): the worlds whose ego has a car
+        in its scan within DODGE_M ahead, oncoming or stopped, whose extent across the ego's road
+        overlaps the ego's path, and the steer towards DODGE_CLEAR_M beside it (a heading set by
+        the lateral error, damped like the tracking steer). Why: such a car does not clear by
+        waiting (an oncoming one synchronised to the ego keeps coming, a stopped one stays)."""
+        from racecav.training.expert import YAW_RATE_GAIN
+
+        car = w.car
+        dx, dy = w.x[look, 1:] - w.x[look, :1], w.y[look, 1:] - w.y[look, :1]
+        c, s = np.cos(w.yaw[look, :1]), np.sin(w.yaw[look, :1])
+        ahead, aside = c * dx + s * dy, -s * dx + c * dy
+        rel = w.yaw[look, 1:] - w.yaw[look, :1]
+        v = w.v[look, 1:]
+        oncoming = (np.cos(rel) < -0.7) & (v > STOPPED_V)
+        stopped = v <= STOPPED_V
+        half = 0.5 * (car.length * np.abs(np.sin(rel)) + car.width * np.abs(np.cos(rel)))  # across the road
+        # where it will be across the road when the two meet (an oncoming car's heading may close in)
+        closing = w.v[look, :1] - v * np.cos(rel)
+        meet = np.clip(ahead / np.maximum(closing, 0.1), 0.0, DODGE_S)
+        aside_then = aside + v * np.sin(rel) * meet
+        reach = np.maximum(DODGE_M, DODGE_S * closing)
+        near_path = np.minimum(np.abs(aside), np.abs(aside_then)) < half + car.width / 2 + 0.1
+        blocks = (ahead > 0.0) & (ahead < reach) & near_path & (oncoming | stopped) & w.seen_by_agent(look)
+        dodging = blocks.any(axis=1)
+        k = np.where(blocks, ahead, np.inf).argmin(axis=1)
+        i = np.arange(len(look))
+        y_car = w.y[look, 1:][i, k] + (v * np.sin(w.yaw[look, 1:]))[i, k] * meet[i, k]
+        room = half[i, k] + car.width / 2 + DODGE_CLEAR_M
+        y_ego = w.y[look, 0]
+        right, left = y_car - room, y_car + room
+        # away from the car, unless the road has no room on that side
+        go_left = np.where(y_ego >= y_car, left <= ROAD_HALF_M, right < -ROAD_HALF_M)
+        y_t = np.clip(np.where(go_left, left, right), -ROAD_HALF_M, ROAD_HALF_M)
+        heading = w.start_pose[look, 2] + np.clip(DODGE_GAIN * (y_t - y_ego), -0.6, 0.6)
+        err = np.angle(np.exp(1j * (heading - w.yaw[look, 0])))
+        steer = np.clip(DODGE_STEER_GAIN * err - YAW_RATE_GAIN * w.r[look, 0], car.delta_min, car.delta_max) / car.steer_gain
+        return dodging, np.where(dodging, steer, 0.0)
 
     @staticmethod
     def _stopped(w, look: np.ndarray) -> np.ndarray:
@@ -363,6 +420,8 @@ class MirrorTeacher:
             steer = np.concatenate([tracking_steer(w) if w.actors is not None else np.zeros(w.n_envs)
                                     for w in self.fast.worlds])
             throttle = self._stop_throttle[mask] if self.relabel in ("stop", "yield") else np.ones(int(mask.sum()))
+            if self.relabel in ("stop", "yield"):  # yield's own steer where it steers round a car
+                steer = np.where(np.isnan(self._steer), steer, self._steer)
             out[mask] = np.stack([throttle, steer[mask]], axis=1)
         return out, mask
 

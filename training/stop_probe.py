@@ -32,6 +32,7 @@ def stop_probe(scenarios: str, families: list[str], n: int, seed: int, relabel: 
     import numpy as np
 
     from racecav.common.config import EnvConfig
+    from racecav.training.expert import tracking_steer
     from racecav.training.mirror import MirrorTeacher
     from racecav.training.select import ConstantAction, reference_drivers
     from racecav.training.vec_env import FastVecEnv
@@ -46,9 +47,16 @@ def stop_probe(scenarios: str, families: list[str], n: int, seed: int, relabel: 
         teacher = MirrorTeacher(ConstantAction(1.0), env, families, relabel=relabel) if driver is None else None
         fam = np.concatenate([np.array(w.scenario_families)[w.scenario_index] if w.actors is not None
                               else np.full(w.n_envs, "traffic") for w in env.worlds])
+        driven = np.isin(fam, families) | np.isin(np.char.rpartition(fam.astype(str), "/")[:, 2], families)
         done, ok = np.zeros(n, bool), np.zeros(n, bool)
         while not done.all():
-            act = teacher.labels(obs)[0] if teacher else driver(obs)
+            if teacher:  # its families: its labels, and where it gives none, on along the road
+                act, mask = teacher.labels(obs)
+                free = driven & ~mask
+                if free.any():
+                    act[free, 1] = np.concatenate([tracking_steer(w) for w in env.worlds])[free]
+            else:
+                act = driver(obs)
             obs, _r, d, infos = env.step(act.astype(np.float32))
             for i in np.flatnonzero(d & ~done):
                 ok[i] = infos[i].get("is_success", False)
