@@ -667,3 +667,28 @@ def test_anchor_policy_sees_its_own_stride_from_the_envs_history(tmp_path):
     with pytest.raises(ValueError, match="history"):
         env.stacked_view(3, 4)
     env.close()
+
+
+def test_yield_steers_round_an_oncoming_or_stopped_car_and_does_not_wait_for_it(tmp_path, monkeypatch):
+    """--expert yield on the head-on, stopped and braking families, driven by its own labels
+    (`racecav train stop-probe`): it steers round a car that blocks its path (oncoming or stopped)
+    and passes where the straight cars do not; without the steer round (monkeypatched away) it
+    meets the oncoming car and waits for ever behind the stopped one."""
+    from racecav.evaluation import suite as S
+    from racecav.training import mirror as M
+    from racecav.training.stop_probe import stop_probe
+
+    ff = S.load_families("conflicts")
+    names = ["head-on", "stopped", "braking"]
+    ff = ff.model_copy(update={"families": [f for f in ff.families if f.name in names]})
+    S.generate(ff, tmp_path / "suite", n_test=2, n_train=40, seed=8, progress=False)
+    res = stop_probe(str(tmp_path / "suite"), names, 96, seed=2, relabel="yield")
+    teacher, slow, fast = (res[k] for k in ("yield", "straight 1 m/s", "straight, full throttle"))
+    for fam, (k, ok) in teacher.items():
+        assert k >= 20 and ok >= 0.8, (fam, k, ok)
+        assert slow[fam][1] <= 0.1 and fast[fam][1] <= 0.1  # a benchmark: the straight cars lose it
+    monkeypatch.setattr(M.MirrorTeacher, "_dodge", staticmethod(lambda w, look: (np.zeros(len(look), bool),
+                                                                                  np.zeros(len(look)))))
+    without = stop_probe(str(tmp_path / "suite"), names, 96, seed=2, relabel="yield")["yield"]
+    assert without["suite/head-on"][1] <= 0.1 and without["suite/stopped"][1] <= 0.1, without
+    assert without["suite/braking"][1] <= teacher["suite/braking"][1] - 0.3, without  # some stop off the path

@@ -5,9 +5,10 @@ non-evading references (straight at 1 m/s and at full throttle) on the same seed
 Every world drives one episode of the scenario files (selection seed); the teacher's families are
 driven by its labels (training/mirror.MirrorTeacher, relabel stop: brake before the crossing,
 wait while a car in the ego's scan is in it or closing on it, then straight on; relabel yield:
-the same without the stop before the crossing), every other
-family straight at full throttle. It answers whether a manoeuvre that needs no turn before the car
-is in view passes both timings of a family, before a policy is trained to it.
+the same without the stop before the crossing, following a car ahead in the lane and steering
+round one that blocks it), and where the labels end (past the crossing) on along the road at full
+throttle (its tracking steer); every other family straight at full throttle. It answers whether
+a manoeuvre passes a family, before a policy is trained to it.
 """
 
 from __future__ import annotations
