@@ -676,6 +676,7 @@ def test_yield_steers_round_an_oncoming_or_stopped_car_and_does_not_wait_for_it(
     meets the oncoming car and waits for ever behind the stopped one."""
     from racecav.evaluation import suite as S
     from racecav.training import mirror as M
+    from racecav.training.select import ConstantAction
     from racecav.training.stop_probe import stop_probe
 
     ff = S.load_families("conflicts")
@@ -687,6 +688,24 @@ def test_yield_steers_round_an_oncoming_or_stopped_car_and_does_not_wait_for_it(
     for fam, (k, ok) in teacher.items():
         assert k >= 20 and ok >= 0.8, (fam, k, ok)
         assert slow[fam][1] <= 0.1 and fast[fam][1] <= 0.1  # a benchmark: the straight cars lose it
+    # the steps it steers round a car are labelled ones, with a steer of their own (--bc-balance's half)
+    from racecav.training.expert import tracking_steer
+
+    env = FastVecEnv(config=EnvConfig(n_envs=64, scenarios=str(tmp_path / "suite"), scenario_share=1.0,
+                                      n_obstacles=0, lidar="wide", obs_stack=1, brake_below=-0.5), seed=2)
+    t = M.MirrorTeacher(ConstantAction(1.0), env, names, relabel="yield")
+    env.reset()
+    steered = 0
+    for _ in range(60):
+        act, mask = t.labels(env._stacked())
+        st = t.steered()
+        assert not (st & ~mask).any()
+        track = np.concatenate([tracking_steer(w) for w in env.worlds])
+        steered += int(st.sum())
+        assert (np.abs(act[st, 1] - track[st]) > 1e-6).mean() > 0.5 if st.any() else True
+        env.step(act.astype(np.float32))
+    env.close()
+    assert 0 < steered
     monkeypatch.setattr(M.MirrorTeacher, "_dodge", staticmethod(lambda w, look: (np.zeros(len(look), bool),
                                                                                   np.zeros(len(look)))))
     without = stop_probe(str(tmp_path / "suite"), names, 96, seed=2, relabel="yield")["yield"]

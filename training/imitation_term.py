@@ -127,8 +127,10 @@ def make_callback(run_dir: Path, tc, fast, seed: int):
                 # as the car acts (dagger.py): a policy teacher's steering saturates beyond the range
                 label = np.clip(label, self.lo, self.hi)
                 keep = mask | self.teacher.anchored() | (self.step_in_rollout in self.label_at)
+                # --bc-balance's halves: the teacher's labels / the anchors and yield's steering round a car
+                kind = mask & ~self.teacher.steered()
                 if keep.any():
-                    self._store(raw[keep], label[keep], mask[keep], self._in_view(keep) if tc.aux_seen > 0 else None)
+                    self._store(raw[keep], label[keep], kind[keep], self._in_view(keep) if tc.aux_seen > 0 else None)
             else:
                 if tc.expert_seen:  # the latch of what has been in view follows every step
                     for e in self.experts:

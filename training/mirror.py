@@ -265,6 +265,7 @@ class MirrorTeacher:
             thr.append(np.where(~near | go, 1.0, -1.0))
             steers.append(steer)
         self._steer = np.concatenate(steers)
+        self._steered = ~np.isnan(self._steer)
         return np.concatenate(lab), np.concatenate(thr)
 
     @staticmethod
@@ -378,6 +379,12 @@ class MirrorTeacher:
                 self._held, self._stop_throttle = self._held | unseen, np.where(unseen, 1.0, self._stop_throttle)
             return self._held
         return self._near(self._mirrored, +1.0)
+
+    def steered(self) -> np.ndarray:
+        """(N,) bool, relabel yield: the steps of the newest :meth:`mirrored` where the label
+        steers round a car (:meth:`_dodge`), a few per cent of its labels; ``--bc-balance`` gives
+        them half of each imitation minibatch (training/imitation_term.py). Other teachers: none."""
+        return getattr(self, "_steered", np.zeros(self.fast.num_envs, bool)) & self._held
 
     def anchored(self) -> np.ndarray:
         """(N,) bool: the worlds of an anchor family whose ego has an actor near on its right
