@@ -64,6 +64,7 @@ ONCOMING_M, ALONG_SIN = 2.0, 0.2  # yield's reach for a car along the ego's road
 # or within DODGE_S of closing; steering DODGE_STEER_GAIN rad per rad of heading error (a firmer
 # hand than the tracking steer's: the manoeuvre is short)
 DODGE_M, DODGE_S, DODGE_CLEAR_M, ROAD_HALF_M, DODGE_GAIN, DODGE_STEER_GAIN = 3.5, 1.6, 0.35, 0.95, 1.5, 2.0
+KEEP_RIGHT_M = 0.15  # m: a car less than this to the ego's right is passed on its right side too
 
 
 class MirrorTeacher:
@@ -347,8 +348,10 @@ class MirrorTeacher:
         room = half[i, k] + car.width / 2 + DODGE_CLEAR_M
         y_ego = w.y[look, 0]
         right, left = y_car - room, y_car + room
-        # away from the car, unless the road has no room on that side
-        go_left = np.where(y_ego >= y_car, left <= ROAD_HALF_M, right < -ROAD_HALF_M)
+        # away from the car, unless the road has no room on that side; to the right of a car about
+        # dead ahead (the side of right-hand traffic: a label that flips with a few cm of offset
+        # would teach the mean of the two, straight on)
+        go_left = np.where(y_ego - y_car >= KEEP_RIGHT_M, left <= ROAD_HALF_M, right < -ROAD_HALF_M)
         y_t = np.clip(np.where(go_left, left, right), -ROAD_HALF_M, ROAD_HALF_M)
         heading = w.start_pose[look, 2] + np.clip(DODGE_GAIN * (y_t - y_ego), -0.6, 0.6)
         err = np.angle(np.exp(1j * (heading - w.yaw[look, 0])))

@@ -889,7 +889,10 @@ ABLATION = (("avoid-paper", None), ("avoid-progress", "avoid-paper"), ("avoid-pr
             ("avoid-gsde-yield", "avoid-gsde-flow120"), ("avoid-gsde-yield-anchor", "avoid-gsde-yield"),
             ("avoid-gsde-yield-weak", "avoid-gsde-yield"), ("avoid-gsde-yield-keep", "avoid-gsde-yield"),
             ("avoid-gsde-yield-balance", "avoid-gsde-yield-keep"),
-            ("avoid-gsde-yield-release", "avoid-gsde-yield-balance"))
+            ("avoid-gsde-yield-release", "avoid-gsde-yield-balance"),
+            ("avoid-gsde-yield-follow", "avoid-gsde-yield-release"), ("avoid-gsde-yield-stride", "avoid-gsde-yield-follow"),
+            ("avoid-gsde-yield-dodge", "avoid-gsde-yield-stride"),
+            ("avoid-gsde-yield-dodge-balance", "avoid-gsde-yield-dodge"))
 """The avoidance runs in ablation order, each with the run it adds one change to (a rejected
 row's successor builds on the last kept one)."""
 
