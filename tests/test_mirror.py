@@ -710,4 +710,19 @@ def test_yield_steers_round_an_oncoming_or_stopped_car_and_does_not_wait_for_it(
                                                                                   np.zeros(len(look)))))
     without = stop_probe(str(tmp_path / "suite"), names, 96, seed=2, relabel="yield")["yield"]
     assert without["suite/head-on"][1] <= 0.1 and without["suite/stopped"][1] <= 0.1, without
+    monkeypatch.undo()
+
+    # a car dead ahead (the paper's head-to-head, offset 0 +- 5 cm) is passed on its right, every time
+    env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(SCENARIOS_DIR / "head-to-head.toml"), scenario_share=1.0,
+                                      n_obstacles=0, lidar="wide", obs_stack=1, brake_below=-0.5), seed=2)
+    t = M.MirrorTeacher(ConstantAction(1.0), env, ["head-to-head"], relabel="yield")
+    env.reset()
+    first = np.full(env.num_envs, np.nan)
+    for _ in range(60):
+        act, _mask = t.labels(env._stacked())
+        new = t.steered() & np.isnan(first)
+        first[new] = act[new, 1]
+        env.step(act.astype(np.float32))
+    env.close()
+    assert not np.isnan(first).any() and (first < 0).all(), first  # steer < 0: to the right
     assert without["suite/braking"][1] <= teacher["suite/braking"][1] - 0.3, without  # some stop off the path

@@ -64,7 +64,7 @@ ONCOMING_M, ALONG_SIN = 2.0, 0.2  # yield's reach for a car along the ego's road
 # or within DODGE_S of closing; steering DODGE_STEER_GAIN rad per rad of heading error (a firmer
 # hand than the tracking steer's: the manoeuvre is short)
 DODGE_M, DODGE_S, DODGE_CLEAR_M, ROAD_HALF_M, DODGE_GAIN, DODGE_STEER_GAIN = 3.5, 1.6, 0.35, 0.95, 1.5, 2.0
-KEEP_RIGHT_M = 0.15  # m: a car less than this to the ego's right is passed on its right side too
+KEEP_RIGHT_M = 0.25  # m: a car less than this to the ego's right is passed on its right side too
 
 
 class MirrorTeacher:
