@@ -2078,7 +2078,7 @@ def _ablation_markdown() -> str:
           "M): 26.5 M samples in 64 min. Its 30 evaluated checkpoints (0.5-25 M): conflict-timed 50-96 / 13-52 / "
           "6-86 %, paper-timed 88-100 / 14-77 / 91-100 %, suite 66-79 % (braking 72-91 %, crossings 43-95 / 58-90 "
           "%, head-on 84-93 %, staggered 63-76 %, stopped 77-94 %, turning 30-53 %), free column 59-97 %, scores "
-          "0.61-0.74 (best 6 M: conflict-timed 95 / 23 / 81 %, paper-timed 98 / 48 / 99 %, suite 74 %). The "
+          "0.61-0.74 (the highest, 6 M: conflict-timed 95 / 23 / 81 %, paper-timed 98 / 48 / 99 %, suite 74 %). The "
           "paper-timed head-to-head reaches 68-77 % in the first 2.5 M samples, the best of the yield rows, and "
           "falls back to 14-53 % as the crossings from the left recover (43 -> 80-95 %): the steer to the right "
           "learnt for a car ahead spreads to the crossing car from the left in the first million samples and is "
