@@ -58,11 +58,11 @@ STOPPED_V = 0.05  # m/s: a car below it has stopped (yield's busy test counts it
 # speed it asks for: the car's plus FOLLOW_GAIN per metre of gap beyond FOLLOW_GAP_M (centres).
 FOLLOW_M, LANE_M, FOLLOW_GAP_M, FOLLOW_GAIN = 3.0, 0.4, 0.8, 2.0
 ONCOMING_M, ALONG_SIN = 2.0, 0.2  # yield's reach for a car along the ego's road (|sin| of its heading)
-# yield steers round a car in its scan that blocks its path ahead within DODGE_M, oncoming or
-# stopped: to DODGE_CLEAR_M beside the car's extent, on the side away from it unless the road
-# (ROAD_HALF_M from its centre line, y = 0) has no room there; lateral gain DODGE_GAIN rad per m
-# or within DODGE_S of closing; steering DODGE_STEER_GAIN rad per rad of heading error (a firmer
-# hand than the tracking steer's: the manoeuvre is short)
+# yield steers round a car in its scan that blocks its path ahead (oncoming or stopped) within
+# DODGE_M or DODGE_S of closing: to DODGE_CLEAR_M beside the car's extent, on the side away from it
+# unless the road (ROAD_HALF_M either side of y = 0, the scenario worlds' road centre) has no room
+# there; a heading of DODGE_GAIN rad per m of lateral error, steered at DODGE_STEER_GAIN rad per
+# rad of heading error (a firmer hand than the tracking steer's: the manoeuvre is short)
 DODGE_M, DODGE_S, DODGE_CLEAR_M, ROAD_HALF_M, DODGE_GAIN, DODGE_STEER_GAIN = 3.5, 1.6, 0.35, 0.95, 1.5, 2.0
 KEEP_RIGHT_M = 0.25  # m: a car less than this to the ego's right is passed on its right side too
 
@@ -214,8 +214,10 @@ class MirrorTeacher:
 
     def _stop_and_look(self) -> tuple[np.ndarray, np.ndarray]:
         """(labelled (N,), throttle label (N,)), relabel stop or yield: the worlds of ``families``
-        whose ego is short of the crossing's centre, and the throttle there (+1 go, -1 brake).
-        Call it at every step: the latches follow each world's episode."""
+        whose ego is short of the crossing's centre (yield: also wherever it follows or steers
+        round a car), and the throttle there (+1 go, -1 brake); yield's own steer is kept in
+        ``self._steer`` (NaN: the road's tracking steer). Call it at every step: the latches
+        follow each world's episode."""
         lab, thr, steers = [], [], []
         for k, (w, m) in enumerate(zip(self.fast.worlds, self._mirrored)):
             steer = np.full(w.n_envs, np.nan)  # NaN: the road's tracking steer
