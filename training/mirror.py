@@ -385,6 +385,10 @@ class MirrorTeacher:
             return self._held
         return self._near(self._mirrored, +1.0)
 
+    def in_families(self) -> np.ndarray:
+        """(N,) bool: the worlds whose current episode runs a file of ``families``."""
+        return self._family(self._mirrored)
+
     def steered(self) -> np.ndarray:
         """(N,) bool, relabel yield: the steps of the newest :meth:`mirrored` where the label
         steers round a car (:meth:`_dodge`), a few per cent of its labels; ``--bc-balance`` gives

@@ -48,12 +48,11 @@ def stop_probe(scenarios: str, families: list[str], n: int, seed: int, relabel: 
         teacher = MirrorTeacher(ConstantAction(1.0), env, families, relabel=relabel) if driver is None else None
         fam = np.concatenate([np.array(w.scenario_families)[w.scenario_index] if w.actors is not None
                               else np.full(w.n_envs, "traffic") for w in env.worlds])
-        driven = np.isin(fam, families) | np.isin(np.char.rpartition(fam.astype(str), "/")[:, 2], families)
         done, ok = np.zeros(n, bool), np.zeros(n, bool)
         while not done.all():
             if teacher:  # its families: its labels, and where it gives none, on along the road
                 act, mask = teacher.labels(obs)
-                free = driven & ~mask
+                free = teacher.in_families() & ~mask
                 if free.any():
                     act[free, 1] = np.concatenate([tracking_steer(w) for w in env.worlds])[free]
             else:

@@ -227,10 +227,10 @@ class FastVecEnv(VecEnv):
     def _stacked(self) -> np.ndarray:
         """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
         (then the critic's privileged features of the worlds' current state, if asked)."""
-        obs = self._stack[:, ::self.stride].reshape(self.num_envs, -1) if self.n_stack > 1 else self._stack[:, 0]
+        obs = self.stacked_view(self.n_stack, self.stride)
         if self.privileged:
             return np.concatenate([obs, np.concatenate([privileged_features(w) for w in self.worlds])], axis=1)
-        return obs.copy()
+        return obs
 
     def stacked_view(self, n_stack: int, stride: int) -> np.ndarray:
         """The raw scans as a policy with its own ``n_stack`` and ``stride`` sees them (e.g. a frozen
