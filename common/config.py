@@ -543,7 +543,8 @@ class TrainConfig(Section):
     """overtake with bc_coef: each imitation minibatch half relabelled steps (the teacher's labels) and
     half the others (anchors, spaced labels, and yield's steering round a car: MirrorTeacher.steered),
     whatever their shares of the stored labels; e.g. yield's few brake labels against many anchored
-    evasions (docs/training.md, row 84), or its few steers round an oncoming car (row 89)."""
+    evasions (docs/training.md, row 84), or its few steers round an oncoming car (row 89). dagger
+    with expert yield: half yield's steering round a car, half its other labels (row 91)."""
     anchor_from: str | None = None
     """overtake with bc_coef and anchor_families: the SB3 zip (a run's checkpoint, with its
     normalisation beside it) whose actions label the anchored steps instead of ``init_from``'s, e.g.

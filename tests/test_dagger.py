@@ -252,7 +252,7 @@ def test_a_balanced_imitation_minibatch_is_half_teacher_labels():
     are stored; uniform without it, and while one kind is missing."""
     import numpy as np
 
-    from racecav.training.imitation_term import minibatches
+    from racecav.training.dagger import minibatches
 
     rng = np.random.default_rng(0)
     man = np.zeros(10_000, bool)

@@ -11,7 +11,10 @@ future (training/expert.py) labels every step with its action, and the policy (t
 MlpPolicy, 2 x 64 tanh, on the same lidar observation) is fitted to those labels by regression
 of its mean action (Ross et al. 2011, DAgger): the policy drives (``expert_share`` of the
 episodes are driven by the planner), so the labels cover the states the policy itself reaches; all
-labelled steps are aggregated (the newest ``dataset_max``) and fitted after each rollout.
+labelled steps are aggregated (the newest ``dataset_max``) and fitted after each rollout. With
+``--bc-balance`` and the yield teacher, half of each minibatch are the steps where it steers round
+a car (MirrorTeacher.steered; then counted as "manoeuvres"): they are a few per cent of its labels,
+and fitted uniformly the policy learnt to drive straight at the car (docs/training.md, row 91).
 
 The run folder is a PPO run's (training/train.py): config.json, progress.csv, checkpoints/
 step_<N>.zip + .vecnorm.pkl, latest.*; ``racecav train select`` and ``ship`` read it as they read
@@ -72,6 +75,19 @@ def imitation_loss(pred, label, lo, hi, scale):
     diff = torch.where(label >= hi - 1e-6, torch.clamp(diff, max=0.0), diff)
     diff = torch.where(label <= lo + 1e-6, torch.clamp(diff, min=0.0), diff)
     return ((diff / scale) ** 2).mean()
+
+
+def minibatches(rng: np.random.Generator, man: np.ndarray, size: int, balance: bool, count: int):
+    """``count`` index arrays of ``size`` into the stored labels (``man``: the steps of the kind that
+    gets its own half): uniform, or with ``balance`` half ``man`` steps and half the others
+    (``--bc-balance``; uniform while either kind is missing). The split is made once per fit."""
+    mine, rest = (np.flatnonzero(man), np.flatnonzero(~man)) if balance else ((), ())
+    half = size // 2
+    for _ in range(count):
+        if len(mine) and len(rest):
+            yield np.concatenate([mine[rng.integers(0, len(mine), half)], rest[rng.integers(0, len(rest), size - half)]])
+        else:
+            yield rng.integers(0, len(man), size)
 
 
 def mirror_teacher(tc, fast):
@@ -163,6 +179,8 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
             for _ in range(tc.n_steps):
                 if teacher is not None:
                     label, man = teacher.labels(venv.get_original_obs())
+                    if tc.bc_balance:  # yield's steering round a car: a few per cent of the labels
+                        man = teacher.steered()
                 else:
                     label = np.concatenate([e.act() for e in experts])
                     man = np.concatenate([e.last_best != 0 for e in experts])
@@ -194,8 +212,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
                 if stop.requested:
                     break
             losses = []
-            for _ in range(tc.grad_steps):
-                j = rng.integers(0, size, tc.batch_size)
+            for j in minibatches(rng, data_man[:size], tc.batch_size, tc.bc_balance, tc.grad_steps):
                 pred = mean_action(policy, data_obs[j])
                 loss = imitation_loss(pred, torch.as_tensor(data_act[j]), lo_t, hi_t, scale)
                 opt.zero_grad()

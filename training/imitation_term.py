@@ -42,24 +42,11 @@ from pathlib import Path
 
 import numpy as np
 
-from racecav.training.dagger import LOSS_SCALE, STEER_TOL, action_bounds, imitation_loss, mean_action
+from racecav.training.dagger import LOSS_SCALE, STEER_TOL, action_bounds, imitation_loss, mean_action, minibatches
 from racecav.training.runs import append_csv, truncate_csv
 
 log = logging.getLogger("racecav.train")
 FIELDS = ["timesteps", "labels", "loss", "steer_agree", "manoeuvres"]
-
-
-def minibatches(rng: np.random.Generator, man: np.ndarray, size: int, balance: bool, count: int):
-    """``count`` index arrays of ``size`` into the stored labels (``man``: True where a step was
-    relabelled by the teacher): uniform, or with ``balance`` half relabelled steps and half the
-    others (``--bc-balance``; uniform while either kind is missing). The split is made once per fit."""
-    mine, rest = (np.flatnonzero(man), np.flatnonzero(~man)) if balance else ((), ())
-    half = size // 2
-    for _ in range(count):
-        if len(mine) and len(rest):
-            yield np.concatenate([mine[rng.integers(0, len(mine), half)], rest[rng.integers(0, len(rest), size - half)]])
-        else:
-            yield rng.integers(0, len(man), size)
 
 
 def make_callback(run_dir: Path, tc, fast, seed: int):

@@ -46,8 +46,9 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
                "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
                "sde_sample_freq", "hidden", "privileged_critic", "hold_until_seen", "hold_families", "hold_through")
 """TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
-DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max")
-"""TrainConfig fields that are flags of ``racecav train dagger`` only."""
+DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max",
+                "bc_balance")
+"""TrainConfig fields that are flags of ``racecav train dagger``."""
 IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families", "anchor_from", "bc_balance",
                    "anchor_seen", "aux_seen", "expert_horizon_s", "expert_commit_s", "expert_seen", "dataset_max")
 """TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
