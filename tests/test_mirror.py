@@ -605,7 +605,8 @@ def test_yield_follows_a_car_that_turned_in_ahead_and_waits_for_an_oncoming_one_
                 act = np.tile(np.array([1.0, 0.0], np.float32), (env.num_envs, 1))
             else:
                 act, mask = teacher.labels(env._stacked())
-                past = mask & (world.x[:, 0] >= 0.0) & ~done  # labelled past the crossing: only to follow
+                # labelled past the crossing: only to follow, or to hold its side round an oncoming car
+                past = mask & (world.x[:, 0] >= 0.0) & ~done & ~teacher.steered()
                 if past.any():
                     following, t_follow = M.MirrorTeacher._follow(world, np.flatnonzero(past))
                     assert following.all() and np.allclose(act[past, 0], t_follow)
@@ -618,7 +619,8 @@ def test_yield_follows_a_car_that_turned_in_ahead_and_waits_for_an_oncoming_one_
 
     into, ok = drive(True)
     assert into.sum() >= 16 and (~into).sum() >= 16  # both variants drawn
-    assert ok[into].mean() >= 0.7 and ok[~into].mean() >= 0.9, (ok[into].mean(), ok[~into].mean())
+    # left_across: its car may first look like an oncoming one to steer round (MirrorTeacher._dodge)
+    assert ok[into].mean() >= 0.7 and ok[~into].mean() >= 0.6, (ok[into].mean(), ok[~into].mean())
     _into, straight = drive(False)
     assert straight.mean() <= 0.1  # a benchmark: the straight car at full throttle loses it
 
@@ -629,7 +631,7 @@ def test_yield_follows_a_car_that_turned_in_ahead_and_waits_for_an_oncoming_one_
     monkeypatch.undo()
     monkeypatch.setattr(M, "ONCOMING_M", M.APPROACH_M)
     into, ok = drive(True)
-    assert ok[~into].mean() <= 0.5  # waits too long for the oncoming car
+    assert ok[~into].mean() <= 0.3, ok[~into].mean()  # waits too long for the oncoming car
 
 
 def test_anchor_policy_sees_its_own_stride_from_the_envs_history(tmp_path):
@@ -706,8 +708,8 @@ def test_yield_steers_round_an_oncoming_or_stopped_car_and_does_not_wait_for_it(
         env.step(act.astype(np.float32))
     env.close()
     assert 0 < steered
-    monkeypatch.setattr(M.MirrorTeacher, "_dodge", staticmethod(lambda w, look: (np.zeros(len(look), bool),
-                                                                                  np.zeros(len(look)))))
+    monkeypatch.setattr(M.MirrorTeacher, "_dodge", staticmethod(lambda w, look, holding: (np.zeros(len(look), bool),
+                                                                                           np.zeros(len(look)))))
     without = stop_probe(str(tmp_path / "suite"), names, 96, seed=2, relabel="yield")["yield"]
     assert without["suite/head-on"][1] <= 0.1 and without["suite/stopped"][1] <= 0.1, without
     monkeypatch.undo()
@@ -726,3 +728,38 @@ def test_yield_steers_round_an_oncoming_or_stopped_car_and_does_not_wait_for_it(
     env.close()
     assert not np.isnan(first).any() and (first < 0).all(), first  # steer < 0: to the right
     assert without["suite/braking"][1] <= teacher["suite/braking"][1] - 0.3, without  # some stop off the path
+
+
+def test_yield_holds_its_side_round_an_oncoming_car_until_it_is_past(monkeypatch):
+    """--expert yield on the conflict-timed head-to-head, driven by its own labels: once it steers
+    round the oncoming car it keeps full throttle until the car is past. Without the hold
+    (DODGE_HOLD_M taking the band back to the path's width) the car stops blocking once the ego is
+    half out of its way, and the label flips to braking mid-manoeuvre (the flip a policy fitted to
+    these labels learnt as steering back and forth)."""
+    from racecav.training import mirror as M
+    from racecav.training.expert import tracking_steer
+    from racecav.training.select import ConstantAction
+
+    def braked_while_passing():
+        env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(SCENARIOS_DIR / "conflict-head-to-head.toml"),
+                                          scenario_share=1.0, n_obstacles=0, lidar="wide", obs_stack=1,
+                                          brake_below=-0.5), seed=2)
+        t = M.MirrorTeacher(ConstantAction(1.0), env, ["conflict-head-to-head"], relabel="yield")
+        env.reset()
+        w = env.worlds[0]
+        started, braked, done = (np.zeros(env.num_envs, bool) for _ in range(3))
+        for _ in range(80):
+            act, mask = t.labels(env._stacked())
+            free = t.in_families() & ~mask
+            act[free, 1] = tracking_steer(w)[free]
+            started |= t.steered() & ~done
+            braked |= started & ~done & (w.x[:, 0] < w.x[:, 1]) & (act[:, 0] < 0)
+            done |= env.step(act.astype(np.float32))[2]
+        env.close()
+        return started, braked
+
+    started, braked = braked_while_passing()
+    assert started.all() and not braked.any(), (started.mean(), braked.mean())
+    monkeypatch.setattr(M, "DODGE_HOLD_M", 0.1 - M.DODGE_CLEAR_M)
+    started, braked = braked_while_passing()
+    assert started.all() and braked.mean() > 0.5, braked.mean()

@@ -63,8 +63,10 @@ ONCOMING_M, ALONG_SIN = 2.0, 0.2  # yield's reach for a car along the ego's road
 # unless the road (ROAD_HALF_M either side of y = 0, the scenario worlds' road centre) has no room
 # there; a heading of DODGE_GAIN rad per m of lateral error, steered at DODGE_STEER_GAIN rad per
 # rad of heading error (a firmer hand than the tracking steer's: the manoeuvre is short)
-DODGE_M, DODGE_S, DODGE_CLEAR_M, ROAD_HALF_M, DODGE_GAIN, DODGE_STEER_GAIN = 3.5, 1.6, 0.35, 0.95, 1.5, 2.0
+DODGE_M, DODGE_S, DODGE_CLEAR_M, ROAD_HALF_M, DODGE_GAIN, DODGE_STEER_GAIN = 3.5, 2.0, 0.35, 0.95, 1.5, 2.0
 KEEP_RIGHT_M = 0.25  # m: a car less than this to the ego's right is passed on its right side too
+DODGE_MAX_RAD = 0.25  # rad: the dodge's largest heading off the road's
+DODGE_HOLD_M = 0.1  # m: a car counts as blocking up to this beyond DODGE_CLEAR_M beside the ego
 
 
 class MirrorTeacher:
@@ -157,6 +159,7 @@ class MirrorTeacher:
         # yield: the families in both lists, and per world (latched per episode) a seen car stopped
         self._until_stop = self._per_file(self.families & self.anchor_families)
         self._stalled = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]
+        self._dodging = [np.zeros(w.n_envs, bool) for w in fast_env.worlds]  # yield steered round a car last step
 
     def set_anchor_policy(self, policy, teacher_brakes: bool) -> None:
         """Label the :meth:`anchored` steps with ``policy``'s actions instead of the teacher's
@@ -232,8 +235,8 @@ class MirrorTeacher:
             x, v = w.x[:, 0], w.v[:, 0]
             short = m[w.scenario_index] & (x < 0.0)
             if self.relabel == "yield":  # brake exactly while a seen car is busy
-                stalled = self._stalled[k]
-                stalled[new] = False
+                stalled, dodging = self._stalled[k], self._dodging[k]
+                stalled[new] = dodging[new] = False
                 look = np.flatnonzero(short & ~stalled & self._until_stop[k][w.scenario_index])
                 if look.size:
                     stalled[look] = self._stopped(w, look)
@@ -250,7 +253,9 @@ class MirrorTeacher:
                     short[look[follow]] = True
                     throttle[look[follow]] = np.minimum(throttle[look[follow]], t_follow[follow])
                     # a car that blocks the path (oncoming or stopped) is passed, not waited for
-                    dodge, d_steer = self._dodge(w, look)
+                    dodge, d_steer = self._dodge(w, look, dodging[look])
+                    dodging[:] = False
+                    dodging[look] = dodge
                     short[look[dodge]] = True
                     throttle[look[dodge]] = 1.0
                     steer[look[dodge]] = d_steer[dodge]
@@ -319,29 +324,39 @@ class MirrorTeacher:
         return following, np.where(following, throttle, 1.0)
 
     @staticmethod
-    def _dodge(w, look: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _dodge(w, look: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(dodging (len(look),) bool, steer action (len(look),)): the worlds whose ego has a car
         in its scan within DODGE_M ahead, oncoming or stopped, whose extent across the ego's road
         overlaps the ego's path, and the steer towards DODGE_CLEAR_M beside it (a heading set by
         the lateral error, damped like the tracking steer). Why: such a car does not clear by
-        waiting (an oncoming one synchronised to the ego keeps coming, a stopped one stays)."""
+        waiting (an oncoming one synchronised to the ego keeps coming, a stopped one stays).
+        ``holding`` (len(look),): the worlds that steered round a car at the last step; for them
+        a car blocks until the ego is DODGE_CLEAR_M + DODGE_HOLD_M beside it, so the ego holds its
+        side until it is past instead of braking once it is half out of the way."""
         from racecav.training.expert import YAW_RATE_GAIN
 
         car = w.car
+        # in the road's frame, not the ego's: a path along the ego's heading leaves the car as soon
+        # as the ego turns away, and the label would flip back to braking mid-manoeuvre
+        road = w.start_pose[look, 2:3]
         dx, dy = w.x[look, 1:] - w.x[look, :1], w.y[look, 1:] - w.y[look, :1]
-        c, s = np.cos(w.yaw[look, :1]), np.sin(w.yaw[look, :1])
+        c, s = np.cos(road), np.sin(road)
         ahead, aside = c * dx + s * dy, -s * dx + c * dy
-        rel = w.yaw[look, 1:] - w.yaw[look, :1]
+        rel = w.yaw[look, 1:] - road
         v = w.v[look, 1:]
-        oncoming = (np.cos(rel) < -0.7) & (v > STOPPED_V)
+        # along the road towards the ego: a car turning across it is a crossing car, waited for (busy)
+        oncoming = (np.cos(rel) < 0.0) & (np.abs(np.sin(rel)) < ALONG_SIN) & (v > STOPPED_V)
         stopped = v <= STOPPED_V
         half = 0.5 * (car.length * np.abs(np.sin(rel)) + car.width * np.abs(np.cos(rel)))  # across the road
         # where it will be across the road when the two meet (an oncoming car's heading may close in)
-        closing = w.v[look, :1] - v * np.cos(rel)
+        closing = w.v[look, :1] * np.cos(w.yaw[look, :1] - road) - v * np.cos(rel)
         meet = np.clip(ahead / np.maximum(closing, 0.1), 0.0, DODGE_S)
         aside_then = aside + v * np.sin(rel) * meet
         reach = np.maximum(DODGE_M, DODGE_S * closing)
-        near_path = np.minimum(np.abs(aside), np.abs(aside_then)) < half + car.width / 2 + 0.1
+        # a new dodge: the car's extent overlaps the ego's path (a wider test would steer round
+        # the turning family's oncoming cars, which yield waits for)
+        beside = np.where(holding[:, None], DODGE_CLEAR_M + DODGE_HOLD_M, 0.1)
+        near_path = np.minimum(np.abs(aside), np.abs(aside_then)) < half + car.width / 2 + beside
         blocks = (ahead > 0.0) & (ahead < reach) & near_path & (oncoming | stopped) & w.seen_by_agent(look)
         dodging = blocks.any(axis=1)
         k = np.where(blocks, ahead, np.inf).argmin(axis=1)
@@ -355,7 +370,7 @@ class MirrorTeacher:
         # would teach the mean of the two, straight on)
         go_left = np.where(y_ego - y_car >= KEEP_RIGHT_M, left <= ROAD_HALF_M, right < -ROAD_HALF_M)
         y_t = np.clip(np.where(go_left, left, right), -ROAD_HALF_M, ROAD_HALF_M)
-        heading = w.start_pose[look, 2] + np.clip(DODGE_GAIN * (y_t - y_ego), -0.6, 0.6)
+        heading = w.start_pose[look, 2] + np.clip(DODGE_GAIN * (y_t - y_ego), -DODGE_MAX_RAD, DODGE_MAX_RAD)
         err = np.angle(np.exp(1j * (heading - w.yaw[look, 0])))
         steer = np.clip(DODGE_STEER_GAIN * err - YAW_RATE_GAIN * w.r[look, 0], car.delta_min, car.delta_max) / car.steer_gain
         return dodging, np.where(dodging, steer, 0.0)
