@@ -100,6 +100,28 @@ def test_dagger_run_resumes_and_the_selection_loads_its_checkpoints(tmp_path, ca
     assert not (tmp_path / "x" / "config.json").exists()
 
 
+def test_dagger_with_yield_and_balance_counts_its_steering_round_a_car(tmp_path):
+    """`racecav train dagger --expert yield --bc-balance`: the kind that gets half of each minibatch
+    (progress.csv's manoeuvres) is the teacher's steering round a car, a share of its labels, not
+    every relabelled step (on the head-to-head file every step is relabelled)."""
+    import csv
+
+    from racecav.cli import main
+
+    run = tmp_path / "run"
+    flags = ["train", "dagger", "--run-dir", str(run), "--no-progress", "--preset", "fast", "--n-envs", "8",
+             "--n-steps", "8", "--checkpoint-every", "1000", "--grad-steps", "2", "--batch-size", "32",
+             "--world", "figure8", "--heading", "reversed", "--n-obstacles", "4", "--driver", "centerline",
+             "--scenarios", "common/data/scenarios/conflict-head-to-head.toml", "--scenario-share", "1.0",
+             "--obs-stack", "2", "--lidar", "wide", "--brake-below", "-0.5", "--init-from", ROW16,
+             "--expert", "yield", "--mirror-families", "conflict-head-to-head", "--expert-share", "1.0",
+             "--bc-balance", "--steps", "384"]
+    assert main(flags) == 0
+    assert json.loads((run / "config.json").read_text())["bc_balance"] is True
+    last = list(csv.DictReader((run / "progress.csv").open()))[-1]
+    assert 0.0 < float(last["manoeuvres"]) < 0.5, last
+
+
 def test_planner_refuses_traffic_it_cannot_predict():
     fw = FastWorld(n_envs=1, world="figure8", n_obstacles=2, driver=lambda obs: np.zeros((len(obs), 2)))
     with pytest.raises(ValueError, match="centerline"):
