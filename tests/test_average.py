@@ -12,7 +12,7 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-RUN = ROOT / "training/checkpoints/avoid-gsde-flow120"  # row 31: the shipped avoid's run
+RUN = ROOT / "training/checkpoints/avoid-gsde-flow120"  # row 31 (the avoid shipped from 2026-12-02 to 12-05)
 SOURCE = RUN / "checkpoints/step_005005312.zip"
 
 

@@ -8,11 +8,18 @@ import numpy as np
 import pytest
 
 from racecav.common.config import EnvConfig
-from racecav.common.policy import load_policy
 from racecav.common.scenario import SCENARIOS_DIR
 from racecav.training.mirror import MirrorTeacher, mirror_action, mirror_scans
 from racecav.training.vec_env import FastVecEnv
 from tests.checkpoints_support import ROW16
+
+
+def row31():
+    """Row 31 at 5 M (the avoid shipped until 2026-12-05; two consecutive wide scans, no brake): the
+    frozen policy these teacher tests relabel, whose behaviour they were written against."""
+    from racecav.training.select import COMMITTED, checkpoint_policy
+
+    return checkpoint_policy(COMMITTED / "avoid-gsde-flow120" / "checkpoints" / "step_005005312.zip")
 
 
 def test_mirror_reverses_each_stacked_scan_and_negates_the_steering():
@@ -38,7 +45,7 @@ def crossings(tmp_path):
 def test_teacher_mirrors_only_a_mirrored_family_with_a_car_near_on_the_left(crossings):
     """Label = the policy's own action, except in the left-to-right worlds once their car is
     within reach on the ego's left: there the policy's action on the mirrored scans, mirrored."""
-    policy = load_policy("avoid")
+    policy = row31()
     env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2), seed=3)
     teacher = MirrorTeacher(policy, env, ["left-to-right"])
@@ -81,7 +88,7 @@ def test_teacher_names_a_family_the_scenarios_lack(crossings):
     env = FastVecEnv(config=EnvConfig(n_envs=4, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2), seed=0)
     with pytest.raises(ValueError, match=r"cross-left.*left-to-right', 'right-to-left"):
-        MirrorTeacher(load_policy("avoid"), env, ["cross-left"])
+        MirrorTeacher(row31(), env, ["cross-left"])
     env.close()
 
 
@@ -110,7 +117,7 @@ def test_mirrored_policy_is_an_involution_and_the_mirror_table_is_written(tmp_pa
     from racecav.cli import main
     from racecav.training.mirror import MirroredPolicy
 
-    policy = load_policy("avoid")
+    policy = row31()
     scans = np.random.default_rng(0).uniform(0.2, 10.0, (32, policy.obs_dim)).astype(np.float32)
     twice = MirroredPolicy(MirroredPolicy(policy))
     assert np.allclose(twice(scans), policy(scans), atol=1e-6)
@@ -203,7 +210,7 @@ def test_track_teacher_labels_full_throttle_tracking_where_a_seen_car_is_near_on
     policy's own action elsewhere."""
     from racecav.training.expert import tracking_steer
 
-    policy = load_policy("avoid")
+    policy = row31()
     env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2), seed=3)
     teacher = MirrorTeacher(policy, env, ["left-to-right"], seen_only=True, relabel="track")
@@ -237,7 +244,7 @@ def test_hold_teacher_labels_tracking_until_a_car_has_been_seen_before_the_cross
     episode) while the ego is short of the crossing's centre; the policy's own action elsewhere."""
     from racecav.training.expert import tracking_steer
 
-    policy = load_policy("avoid")
+    policy = row31()
     env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2), seed=5)
     with pytest.raises(ValueError, match="mirror-seen"):
@@ -277,7 +284,7 @@ def test_seen_cars_are_the_ones_in_line_of_sight_and_the_teacher_labels_only_tho
     from racecav.common.world import load_world
 
     walls = load_world("intersection").walls
-    policy = load_policy("avoid")
+    policy = row31()
     env = FastVecEnv(config=EnvConfig(n_envs=16, scenarios=str(crossings), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2), seed=3)
     near_only = MirrorTeacher(policy, env, ["left-to-right"])
@@ -391,11 +398,12 @@ def test_stop_teacher_driven_itself_passes_both_timings_on_both_sides(tmp_path, 
     names = ["left-to-right", "conflict-left-to-right", "right-to-left", "conflict-right-to-left"]
     for name in names:
         shutil.copy(SCENARIOS_DIR / f"{name}.toml", folder / f"{name}.toml")
-    policy = load_policy("avoid")
+    policy = row31()  # it drives on past the crossing, where the teacher's labels end
 
     def env_of(brake):
         return FastVecEnv(config=EnvConfig(n_envs=64, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
-                                           lidar="wide", obs_stack=2, brake_below=brake), seed=5)
+                                           lidar="wide", obs_stack=policy.obs_stack, obs_stride=policy.obs_stride,
+                                           brake_below=brake), seed=5)
 
     with pytest.raises(ValueError, match="brake-below"):
         MirrorTeacher(policy, env_of(None), names, relabel=relabel)
@@ -469,7 +477,6 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
     has been in the ego's scan (short of the crossing), then the policy's own action (anchored),
     latched for the episode; the yield families are never anchored. A teacher trained without a
     brake labels its coasts (a_T < 0) as coasts (0), not as the run's brake."""
-    from racecav.common.policy import MODELS_DIR
     from racecav.training.runs import source_env
     from racecav.training.expert import latch_seen, tracking_steer
     from racecav.training.select import COMMITTED
@@ -480,11 +487,11 @@ def test_yield_anchor_families_get_the_approach_label_then_keep_their_own_answer
     yielding, anchors = ["conflict-left-to-right", "left-to-right"], ["conflict-right-to-left", "head-to-head"]
     for name in yielding + anchors:
         shutil.copy(SCENARIOS_DIR / f"{name}.toml", folder / f"{name}.toml")
-    policy = load_policy("avoid")
+    policy = row31()
     env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(folder), scenario_share=1.0, n_obstacles=0,
                                       lidar="wide", obs_stack=2, brake_below=-0.5), seed=3)
-    # the shipped avoid has no brake: its a_T < 0 (a coast) must not become a brake label here
-    assert source_env(MODELS_DIR / "avoid.zip", "brake_below", None) is None
+    # row 31 has no brake: its a_T < 0 (a coast) must not become a brake label here
+    assert source_env(COMMITTED / "avoid-gsde-flow120" / "checkpoints" / "step_005005312.zip", "brake_below", None) is None
     assert source_env(COMMITTED / "avoid-gsde-stoplook" / "latest.zip", "brake_below", None) == -0.5
     teacher = MirrorTeacher(policy, env, yielding, anchors, relabel="yield", teacher_brakes=False)
     (world,) = env.worlds
@@ -545,7 +552,7 @@ def test_yield_family_also_anchored_waits_until_its_car_has_stopped(tmp_path):
     ff = S.load_families("conflicts")
     ff = ff.model_copy(update={"families": [f for f in ff.families if f.name in ("braking", "cross-left")]})
     S.generate(ff, tmp_path / "suite", n_test=2, n_train=16, seed=5, progress=False)
-    policy = load_policy("avoid")
+    policy = row31()
     env = FastVecEnv(config=EnvConfig(n_envs=32, scenarios=str(tmp_path / "suite"), scenario_share=1.0,
                                       n_obstacles=0, lidar="wide", obs_stack=2, brake_below=-0.5), seed=4)
     teacher = MirrorTeacher(policy, env, ["braking", "cross-left"], ["braking"], relabel="yield",

@@ -138,15 +138,19 @@ def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
 
 
 def test_checkpoint_policy_is_the_shipped_policy_exported_from_it(tmp_path):
-    """The shipped avoid was exported from row 31's 5 M checkpoint: read back from the run's .zip
-    with the run's config.json, it has the same view settings and the same actions. A checkpoint
-    outside a run folder is an error naming the missing record."""
+    """The shipped avoid was exported from the committed checkpoint its metadata names (run and
+    checkpoint): read back from the run's .zip with the run's config.json, it has the same view
+    settings and the same actions. A checkpoint outside a run folder is an error naming the
+    missing record."""
+    import json
+
     import numpy as np
 
-    from racecav.common.policy import load_policy
-    from racecav.training.select import checkpoint_policy
+    from racecav.common.policy import MODELS_DIR, load_policy
+    from racecav.training.select import COMMITTED, checkpoint_policy
 
-    ck = Path("training/checkpoints/avoid-gsde-flow120/checkpoints/step_005005312.zip")
+    meta = json.loads((MODELS_DIR / "avoid.json").read_text())
+    ck = COMMITTED / meta["run"] / "checkpoints" / meta["checkpoint"]
     pol, shipped = checkpoint_policy(ck), load_policy("avoid")
     for k in ("lidar", "obs_stack", "obs_stride", "brake_below"):
         assert pol.metadata.get(k) == shipped.metadata.get(k), k
