@@ -544,7 +544,8 @@ class TrainConfig(Section):
     half the others (anchors, spaced labels, and yield's steering round a car: MirrorTeacher.steered),
     whatever their shares of the stored labels; e.g. yield's few brake labels against many anchored
     evasions (docs/training.md, row 84), or its few steers round an oncoming car (row 89). dagger
-    with expert yield: half yield's steering round a car, half its other labels (row 91)."""
+    with expert yield: half yield's steering round a car, half its other labels (rows 92-94; row 95,
+    the shipped avoid, without)."""
     anchor_from: str | None = None
     """overtake with bc_coef and anchor_families: the SB3 zip (a run's checkpoint, with its
     normalisation beside it) whose actions label the anchored steps instead of ``init_from``'s, e.g.

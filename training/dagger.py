@@ -13,8 +13,9 @@ of its mean action (Ross et al. 2011, DAgger): the policy drives (``expert_share
 episodes are driven by the planner), so the labels cover the states the policy itself reaches; all
 labelled steps are aggregated (the newest ``dataset_max``) and fitted after each rollout. With
 ``--bc-balance`` and the yield teacher, half of each minibatch are the steps where it steers round
-a car (MirrorTeacher.steered; then counted as "manoeuvres"): they are a few per cent of its labels,
-and fitted uniformly the policy learnt to drive straight at the car (docs/training.md, row 91).
+a car (MirrorTeacher.steered; then counted as "manoeuvres"), a few per cent of its labels (rows
+92-94 of docs/training.md). The shipped avoid (row 95) is fitted uniformly: balanced, the policy
+also steered round the turning family's oncoming car, which the teacher waits for.
 
 The run folder is a PPO run's (training/train.py): config.json, progress.csv, checkpoints/
 step_<N>.zip + .vecnorm.pkl, latest.*; ``racecav train select`` and ``ship`` read it as they read

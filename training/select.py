@@ -2110,7 +2110,7 @@ def _ablation_markdown() -> str:
           "100 / 4 / 100 %, suite 80 % (every family 71-92 %), score 0.72. The same at 2 x 128 (`--hidden 128`, widened "
           "as row 38) and both with `--bc-balance` (now a dagger flag too: half of each minibatch the steps where the "
           "teacher steers round a car, MirrorTeacher.steered) pass 3-28 % of the paper's two head-to-head files in the "
-          "fast world (training/stop_probe-like drives of 64 worlds per file). Traced there, the labels along the "
+          "fast world (the policy driving 64 worlds of each file). Traced there, the labels along the "
           "policy's own path flip: the teacher's `_dodge` tested whether the car was in the path along the ego's current "
           "heading, so once the ego had turned a few degrees away the car no longer blocked, the label became the brake "
           "for a busy car with the tracking steer back towards it, and then the dodge again; a policy fitted to that "
@@ -2140,7 +2140,7 @@ def _ablation_markdown() -> str:
           "M with the fixed teacher): 3.4 M samples with the suite in 19 min (53 min for the chain; the suite's head-on "
           "cars then drawn 0.5 m either side of the ego's path; row 94's at 0.25 m). Its 6 evaluated checkpoints (0.5-3 "
           "M): conflict-timed 84-96 / 82-93 / 85-95 %, paper-timed 94-100 / 94-98 / 93-100 %, suite 78-83 % (turning "
-          "34-56 %, the lowest family of each), scores 0.87-0.92. Its 2 M checkpoint meets 6 of the 8 targets (conflict-"
+          "34-56 %, the lowest family of each), scores 0.88-0.92. Its 2 M checkpoint meets 6 of the 8 targets (conflict-"
           "timed 94 / 91 / 95 %, paper-timed 100 / 96 / 100 %; suite 83 %, turning 54 %), score 0.917, the first yield "
           "row to hold both timings of the paper's crossings and its head-to-head together. Traced in the fast world, its"
           " turning failures are both variants: behind the car that turned in ahead (right_into) it keeps 0.5-0.9 of "
@@ -2163,8 +2163,8 @@ def _ablation_markdown() -> str:
           "own path and the head-on cars are met at the crossing too, the two reasons the balance was needed): 3.2 M "
           "samples in 17 min, evaluated at 0.5 and 2 M (the run was stopped for the results table). 0.5 M: conflict-timed"
           " 97 / 95 / 99 %, paper-timed 99 / 94 / 100 %, suite 88 % (turning 81 %; the lowest family staggered, 74 %), "
-          "score 0.941. 2 M: conflict-timed 96 / 98 / 99 %, paper-timed 100 / 96 / 99 %, suite 89 % (braking 80, "
-          "crossings 93 / 93, head-on 99, staggered 74, stopped 96, turning 82 %), free column 99 %, score 0.950, the "
+          "score 0.941. 2 M: conflict-timed 96 / 98 / 99 %, paper-timed 100 / 96 / 99 %, suite 89 % (braking 87, "
+          "crossings 100 / 93, head-on 97, staggered 74, stopped 93, turning 82 %), free column 99 %, score 0.950, the "
           "highest of any row. Each meets 7 of the 8 targets on the selection seeds, short of a paper-timed crossing's "
           "100 % by 1 trial of 100 (row 31's 5 M: the left-to-right by 17). ",
           "Kept; its 2 M checkpoint, the targets' pick (below; committed in training/checkpoints/avoid-yield-",
