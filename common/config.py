@@ -363,8 +363,6 @@ class EnvConfig(Section):
     def _boost_needs_curriculum(self):
         if self.curriculum_boost and not self.curriculum:
             raise ValueError("curriculum_boost: weighs the curriculum's draw; set curriculum too")
-        if self.hold_track and self.hold_heading:
-            raise ValueError("hold_track: already charges the heading with its own latch; drop hold_heading")
         return self
 
     lidar: Literal["paper", "wide"] = "paper"
@@ -383,31 +381,9 @@ class EnvConfig(Section):
     scenario ego's initial heading), added to 5 T^2. 0: the paper's reward. ~18.5 matches 5 T^2
     at full speed (2.7 m/s x 0.1 s); without it, turning away from a conflict and circling
     earns as much as driving on."""
-    contact_penalty: float = Field(0.0, le=0)
-    """Reward added at a contact (<= 0). 0: the paper's reward (a contact only ends the episode)."""
-    lane_keeping: float = Field(0.0, ge=0)
-    """Scenario episodes of the fast VecEnv: reward -lane_keeping x |a_delta - tracking steer| at
-    each step where the ego would pass free by tracking its road at full throttle (the
-    privileged planner's look-ahead, training/lane_keeping.py). 0: off (the paper's reward).
-    It pays for keeping the lane until a conflict is certain, so an evasion waits until needed."""
-    lane_keeping_horizon_s: float = Field(2.5, gt=0)
-    """The look-ahead (s) of lane_keeping's "the lane is free"."""
     flow_reward: float = Field(0.0, ge=0)
     """Scenario episodes of the fast VecEnv: reward per metre the ego moves along the direction
     of travel of a near crossing car (negative against it; training/flow_reward.py). 0: off."""
-    hold_heading: float = Field(0.0, ge=0)
-    """Scenario episodes of the fast VecEnv: reward -hold_heading x |heading error| (rad, from
-    the ego's road) at each step until a car has been in the ego's scan (latched per episode;
-    training/hold_heading.py), so an evasion answers a car the ego sees. 0: off."""
-    hold_track: float = Field(0.0, ge=0)
-    """Scenario episodes of the fast VecEnv: reward -hold_track x (|lateral offset| (m) + |heading
-    error| (rad) + (1 - T)) at each step until a car is in the view of the ego moved onto its
-    road (latched per episode; training/hold_heading.py): a straight pass at full throttle until
-    a straight ego would see a car. Excludes hold_heading. 0: off."""
-    proximity_penalty: float = Field(0.0, ge=0)
-    """Scenario episodes of the fast VecEnv: reward -proximity_penalty x (1.2 m - d) at each step
-    where the nearest other car is at a centre distance d < 1.2 m (training/proximity.py), so
-    every pass pays for its margin, not only the ones that touch. 0: off."""
     brake_below: float | None = Field(None, gt=-1, le=0)
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The
@@ -423,7 +399,7 @@ class TrainConfig(Section):
 
     stage: Literal["racing", "overtake", "dagger"] = "overtake"
     """racing: stage 1 on the empty track; overtake: stage 2 among obstacle cars (and scenarios);
-    dagger: the overtake env, the policy imitating a privileged planner (training/dagger.py)."""
+    dagger: the overtake env, the policy imitating the yield teacher (training/dagger.py)."""
     preset: Literal["paper", "fast"] = "paper"
     """The preset the run started from (TRAIN_PRESETS)."""
     seed: int = Field(0, ge=0)
@@ -456,127 +432,36 @@ class TrainConfig(Section):
     """Start the weights (and the normalisation of a .vecnorm.pkl beside it) from this SB3 zip."""
     init_std: float | None = Field(None, gt=0)
     """With init_from: reset the action std to this (a converged policy explores too little)."""
-    mirror_symmetric: bool = False
-    """A mirror-symmetric actor: its action on the mirrored scans is its action mirrored (the
-    same 2 x 64 tanh MlpPolicy with tied weights; training/symmetric.py)."""
-    mirror_augment: bool = False
-    """Every PPO update also fits its rollout seen in a mirror (scans reflected, steering negated,
-    the same advantages; training/augment.py)."""
     sde_sample_freq: int | None = Field(None, ge=-1)
     """Generalised state-dependent exploration (SB3's ``use_sde``): the action noise is a random
     linear function of the policy's last hidden layer, drawn anew every this many steps (-1: once
     per rollout), so an exploratory turn lasts. None: SB3's independent noise at every step."""
     hidden: int = Field(64, ge=2)
     """Units in each of the two hidden layers of actor and critic (64: the paper's MlpPolicy). A
-    narrower ``init_from`` policy is widened with its function kept (training/widen.py)."""
-    privileged_critic: bool = False
-    """The critic also reads the other cars' positions and velocities (training only; the actor,
-    the policy that ships, reads only the scans: training/privileged.py)."""
-    hold_until_seen: bool = False
-    """PPO's rollouts (training only): in a scenario episode the ego is driven straight along its
-    road at full throttle (training/expert.tracking_steer) until a car has returned a ray of its
-    scan or it is past its conflict point, whatever the policy's action; from then on the
-    policy drives (training/vec_env.FastVecEnv). A turn begun before a car is in view then earns
-    nothing, so only answers to what the scan shows are learnt. The policy still has to learn to
-    drive straight until then itself: ``--bc-coef --expert hold`` labels those steps, or
-    ``hold_families`` leaves some families to it. Measured (docs/training.md, rows 61-65): the
-    answers to a car in view are learnt; the labels pull them towards straight too, and the
-    free families did not undo the turn the policy starts before a car is in view."""
-    hold_families: str = ""
-    """hold_until_seen: the scenario families it holds (comma-separated: a suite, ``conflicts``; a
-    family of every suite, ``cross-left``; or of one, ``conflicts/cross-left``); "": every one.
-    The policy drives the others from the start: their steps before a car is in view are the
-    ones that teach it how to approach a crossing it cannot yet see."""
-    hold_through: str = ""
-    """hold_until_seen: of the held families, those held straight to the conflict point even once a
-    car is in view (comma-separated, as hold_families; "": none), e.g. ``paper-timed``, whose cars
-    a straight fast ego passes ahead of: with ``--expert hold`` their whole approach is labelled
-    straight, so the policy must tell them from a car it has to let pass by what it sees."""
-    steer_bound_coef: float = Field(0.0, ge=0)
-    """Weight of a loss on the steering mean beyond the car's steering range, where the sampled
-    actions do not change the car's command (training/bounds.py; 0: off, SB3's PPO)."""
+    ``init_from`` policy must have the same width."""
     env: EnvConfig = EnvConfig(n_envs=1)
     """The training env (heading, obstacles, traffic driver, world, scenarios, observation...)."""
     # dagger stage only (training/dagger.py)
     expert_share: float = Field(0.0, ge=0, le=1)
-    """dagger: share of the episodes the planner drives (DAgger's beta); the policy drives the
-    rest. Every step is labelled with the planner's action either way."""
-    expert_horizon_s: float = Field(2.5, gt=0)
-    """dagger, and overtake with bc_coef: the planner's look-ahead (s)."""
-    expert_seen: bool = False
-    """dagger, and overtake with bc_coef: the planner labels plain tracking in a scenario world
-    until a car has been in its ego's scan in the episode (FastWorld.seen_by_agent), so its
-    labels answer only what the policy has seen (training/expert.py)."""
-    expert_commit_s: float | None = Field(None, gt=0)
-    """dagger, and overtake with bc_coef: the planner labels a manoeuvre only where tracking its road
-    touches something within this time (s), plain tracking elsewhere (None: wherever a manoeuvre
-    scores better; training/expert.Expert)."""
-    expert: Literal["planner", "mirror", "track", "hold", "stop", "yield"] = "planner"
-    """dagger, and overtake with bc_coef: the teacher. planner: the privileged planner
-    (training/expert.py); mirror: the ``init_from`` policy itself, its action on the mirrored scan
-    in the ``mirror_families`` scenarios and its own action elsewhere (training/mirror.py; with
-    bc_coef the mirrored steps and the anchors are labelled, training/imitation_term.py); track:
-    as mirror, with plain tracking of the ego's road at full throttle instead of the mirrored action;
-    hold: plain tracking at full throttle in the ``mirror_families`` scenarios until a car has been in
-    the ego's scan in the episode (whatever its side), the policy's own action elsewhere; stop: stop
-    and look in the ``mirror_families`` scenarios (brake before the crossing, wait while a car in the
-    ego's scan is in it or closing on it, then go straight; needs env.brake_below;
-    training/mirror.MirrorTeacher), the policy's own action elsewhere; yield: as stop without the
-    stop before the crossing (the brake only while a car in the ego's scan is in or closing on it)."""
+    """Share of the episodes the teacher drives (DAgger's beta); the policy drives the rest. Every
+    step is labelled with the teacher's action either way."""
+    expert: Literal["yield"] = "yield"
+    """The teacher: yield (training/teacher.YieldTeacher), the ``init_from`` policy's own action,
+    relabelled in the ``mirror_families`` scenarios: brake while a car in the ego's scan is in or
+    closing on the crossing, follow a car ahead, steer round an oncoming or stopped one. The other
+    teachers of the ablation (a privileged planner, the mirror image, tracking, hold, stop and look)
+    are in the history at commit 3a95a65."""
     mirror_families: str = "cross-left"
-    """dagger or bc_coef with expert mirror, track or hold: the scenario families (comma-separated; a
-    family of every suite, cross-left, or of one, paper-timed/cross-left) whose steps with a car
-    near on the ego's left are relabelled (mirrored action, or tracking); hold: whose steps before
-    any car is seen are relabelled (tracking)."""
-    mirror_seen: bool = False
-    """dagger or bc_coef with expert mirror or track: label a relabelled (or anchored) step only while its car
-    is in the ego's scan, not hidden by the intersection's corners (training/mirror.py)."""
-    anchor_families: str = ""
-    """overtake with bc_coef and expert mirror: families (comma-separated) whose steps with a car
-    near on the ego's right are labelled with the teacher's own action (e.g. cross-right, the
-    mirror pair), besides the anchor steps; with expert yield: families whose approach gets yield's
-    label (tracking at full throttle until a car has been in the ego's scan) and whose steps after it
-    the teacher's own action; a family also in mirror_families is yield's until a car in the ego's
-    scan has stopped, anchored from there (braking: docs/training.md, row 85);
-    training/mirror.MirrorTeacher.anchored."""
+    """The scenario families (comma-separated; a family of every suite, cross-left, or of one,
+    paper-timed/cross-left) whose steps the teacher relabels."""
     bc_balance: bool = False
-    """overtake with bc_coef: each imitation minibatch half relabelled steps (the teacher's labels) and
-    half the others (anchors, spaced labels, and yield's steering round a car: MirrorTeacher.steered),
-    whatever their shares of the stored labels; e.g. yield's few brake labels against many anchored
-    evasions (docs/training.md, row 84), or its few steers round an oncoming car (row 89). dagger
-    with expert yield: half yield's steering round a car, half its other labels (rows 92-94; row 95,
-    the shipped avoid, without)."""
-    anchor_from: str | None = None
-    """overtake with bc_coef and anchor_families: the SB3 zip (a run's checkpoint, with its
-    normalisation beside it) whose actions label the anchored steps instead of ``init_from``'s, e.g.
-    a policy that kept the evasions the run is to keep while ``init_from`` learnt yield's answer."""
-    anchor_seen: bool = False
-    """overtake with bc_coef and expert hold: also label every step of a ``mirror_families`` scenario
-    after the hold ends (a car has been in the ego's scan, or the ego is past the crossing's centre)
-    with the teacher's own action, so that the straight labels before it cannot pull the answers
-    after it (training/mirror.MirrorTeacher.anchored)."""
-    aux_seen: float = Field(0.0, ge=0)
-    """overtake with bc_coef and expert hold: weight of an auxiliary loss on the labelled steps, a
-    training-only logistic head on the actor's last hidden layer that predicts whether a car is in
-    the ego's current scan (FastWorld.seen_by_agent), so that the shared layers must encode it (0: off;
-    the shipped actor is unchanged, the head is dropped; imitation.csv's loss includes the term, the
-    head's accuracy is in the run's log)."""
+    """Each imitation minibatch half the steps where the teacher steers round a car
+    (YieldTeacher.steered), half its other labels (rows 92-94 of docs/training.md; row 95, the
+    shipped avoid, without)."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)
-    """dagger, and overtake with bc_coef: labelled samples kept (the newest; the aggregate is not
-    checkpointed)."""
-    # overtake stage: PPO with the planner's labels as an auxiliary loss (training/imitation_term.py)
-    bc_coef: float = Field(0.0, ge=0)
-    """overtake: weight of the imitation of the teacher (``expert``) after each PPO update (0: plain PPO)."""
-    bc_label_steps: int = Field(2, ge=0)
-    """overtake with bc_coef: rollout steps at which the teacher labels every world (expert mirror:
-    its own action there, the anchors, besides every mirrored step; 0: no anchors)."""
-    bc_grad_steps: int = Field(20, ge=1)
-    """overtake with bc_coef: imitation minibatches (batch_size) after each PPO update."""
-    bc_learning_rate: float | None = Field(None, gt=0)
-    """overtake with bc_coef: the imitation's own Adam on the actor at this learning rate (not
-    checkpointed: a resumed run starts it anew); None: PPO's optimizer and learning rate."""
+    """Labelled samples kept (the newest; the aggregate is not checkpointed)."""
 
 
 TRAIN_PRESETS: dict[str, dict] = {

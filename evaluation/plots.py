@@ -133,3 +133,36 @@ def plot_success_bars(rows: list[tuple[str, list[tuple[float | None, tuple[float
     if title:
         ax.set_title(title, fontsize=10)
     return _save(plt, fig, path)
+
+
+def plot_paths(name: str, paths: dict, out: Path) -> Path:
+    """In-process trials' ego (coloured by outcome) and obstacle paths through the intersection,
+    one panel per scenario (``paths``: scenario -> the ``paths`` of evaluation/inprocess.eval_scenario)."""
+    from racecav.common.world import load_world
+
+    plt = _plt()
+
+    walls = load_world("intersection").walls
+    fig, axes = plt.subplots(1, len(paths), figsize=(5 * len(paths), 5))
+    for ax, (sc, trials) in zip(np.atleast_1d(axes), paths.items()):
+        for x0, y0, x1, y1 in walls:
+            ax.plot([x0, x1], [y0, y1], color="0.4", lw=1)
+        for tr in trials:
+            xy = np.asarray(tr["xy"])
+            if not len(xy):
+                continue
+            c = "tab:green" if tr["success"] else ("tab:red" if tr["contact"] else "tab:orange")
+            ax.plot(xy[:, 0], xy[:, 1], color=c, lw=1.2)
+            ax.plot(xy[-1, 0], xy[-1, 1], "o", color=c, ms=3)
+            for j in range(2, xy.shape[1], 2):
+                ax.plot(xy[:, j], xy[:, j + 1], color="tab:blue", lw=0.6, alpha=0.5)
+        ax.set(title=Path(sc).stem, xlim=(-8.5, 8.5), ylim=(-8.5, 8.5), aspect="equal")  # a file's stem, not its path
+    n = max(len(t) for t in paths.values())
+    fig.suptitle(f"{name}: ego paths, first {n} trials: green success, red contact, orange no contact but "
+                 "short of min progress; blue obstacle", fontsize=9)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out

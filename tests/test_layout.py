@@ -19,6 +19,8 @@ LAYERS = {"common": 0, "sim": 1, "services": 2, "training": 2, "evaluation": 2, 
 ALLOWED_SIDEWAYS = {
     ("training", "services"),  # `racecav train export --onnx` writes the policy service's ONNX model
     ("services", "training"),  # `racecav bench safety` drives laps in the training world
+    ("training", "evaluation"),  # selection and the report run evaluation/inprocess.py's trial loops
+    ("evaluation", "training"),  # evaluation/inprocess.py's fast-world runner steps the batched VecEnv
 }
 """(importer, imported) pairs of the same layer that are allowed."""
 FOLDERS = ("common", "sim", "services", "training", "evaluation", "deploy", "racecav")

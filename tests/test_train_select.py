@@ -22,10 +22,11 @@ def _eval_rows(run: Path) -> tuple[list[str], list[dict]]:
 def test_select_keeps_family_columns(tmp_path, monkeypatch):
     from racecav.cli import main
     from racecav.common.scenario import SCENARIOS_DIR
-    from racecav.training import select
+    from racecav.training import runs, select
 
     # the run record goes to a temporary "committed" folder, not the repository's
-    monkeypatch.setattr(select, "COMMITTED", tmp_path / "committed")
+    monkeypatch.setattr(runs, "COMMITTED", tmp_path / "committed")
+    monkeypatch.setattr(runs, "IMAGES", tmp_path / "img")
     scen = tmp_path / "scenarios"
     scen.mkdir()
     for name in ("right-to-left", "conflict-right-to-left"):
@@ -105,7 +106,7 @@ def test_targets_rank_by_targets_met_and_the_page_names_the_pick(tmp_path):
 
     from racecav.common.policy import MODELS_DIR
     from racecav.training import targets
-    from racecav.training.select import COMMITTED
+    from racecav.training.runs import COMMITTED
 
     cols = ["timesteps", "checkpoint", "score", "conflict-right-to-left_success", "conflict-head-to-head_success",
             "conflict-left-to-right_success", "suite_success", "suite_episodes", "suite_cross-left", "suite_head-on",
@@ -147,7 +148,8 @@ def test_checkpoint_policy_is_the_shipped_policy_exported_from_it(tmp_path):
     import numpy as np
 
     from racecav.common.policy import MODELS_DIR, load_policy
-    from racecav.training.select import COMMITTED, checkpoint_policy
+    from racecav.training.policy_io import checkpoint_policy
+    from racecav.training.runs import COMMITTED
 
     meta = json.loads((MODELS_DIR / "avoid.json").read_text())
     ck = COMMITTED / meta["run"] / "checkpoints" / meta["checkpoint"]
@@ -165,7 +167,9 @@ def test_paths_draws_a_checkpoint_and_refuses_an_unknown_scenario(tmp_path, caps
     """`racecav train paths`: the figure and each scenario's success, from a run's checkpoint."""
     from racecav.cli import main
 
-    ckpt = str(Path(__file__).resolve().parents[1] / "training/checkpoints/avoid-gsde-flow120/checkpoints/step_005005312.zip")
+    from tests.checkpoints_support import ROW31
+
+    ckpt = ROW31
     out = tmp_path / "paths.png"
     assert main(["train", "paths", "--policy", ckpt, "--scenarios", "left-to-right,conflict-left-to-right",
                  "--trials", "2", "--out", str(out)]) == 0
@@ -174,3 +178,22 @@ def test_paths_draws_a_checkpoint_and_refuses_an_unknown_scenario(tmp_path, caps
     assert main(["train", "paths", "--policy", ckpt, "--scenarios", "nope", "--trials", "1",
                  "--out", str(tmp_path / "x.png")]) == 2
     assert "nope" in capsys.readouterr().out and not (tmp_path / "x.png").exists()
+
+
+def test_reference_drivers_are_the_registrys_scripted_controllers():
+    """The in-process references are the registry's ``scripted`` and ``full-throttle`` controllers:
+    the program the harness hands ``racecav scripted`` (printed to 4 decimals), and the throttles
+    of training/checkpoints/references.csv."""
+    from racecav.evaluation.harness import CONTROLLERS
+    from racecav.evaluation.inprocess import reference_drivers
+    from racecav.training.runs import REFERENCES_CSV
+
+    drivers = reference_drivers()
+    assert len(drivers) == 2
+    for drv, name in zip(drivers.values(), ("scripted", "full-throttle")):
+        args = CONTROLLERS[name].args
+        a_t, a_d, _duration = (float(v) for v in args[args.index("--program") + 1].split(","))
+        assert abs(float(drv.action[0]) - a_t) < 1e-4 and float(drv.action[1]) == a_d == 0.0
+    with REFERENCES_CSV.open() as f:
+        stored = {r["reference"]: float(r["a_throttle"]) for r in csv.DictReader(f)}
+    assert stored == {k: float(d.action[0]) for k, d in drivers.items()}

@@ -1,34 +1,30 @@
-"""``racecav train dagger``: the policy imitates a privileged planner (DAgger), resumable.
+"""``racecav train dagger``: the policy imitates the yield teacher (DAgger), resumable.
 
-    racecav train dagger --run-dir runs/avoid-dagger \\
-        --init-from training/checkpoints/avoid-wide/checkpoints/step_052002816.zip \\
-        --preset fast --heading reversed --world figure8 --n-obstacles 8 --driver centerline \\
-        --scenarios conflicts,traffic --scenario-share 0.8 --lidar wide --obs-stack 2 --steps 2e6
+    racecav train dagger --run-dir runs/avoid-yield-nobalance64 \\
+        --init-from training/checkpoints/avoid-yield-turn64/checkpoints/step_001007616.zip ...
 
-PPO learns the conflicts slowly: a success or a contact seconds later is its only signal about
-which of two similar scenes needed an evasion. Here a planner that reads the world's state and
-future (training/expert.py) labels every step with its action, and the policy (the same SB3
-MlpPolicy, 2 x 64 tanh, on the same lidar observation) is fitted to those labels by regression
-of its mean action (Ross et al. 2011, DAgger): the policy drives (``expert_share`` of the
-episodes are driven by the planner), so the labels cover the states the policy itself reaches; all
-labelled steps are aggregated (the newest ``dataset_max``) and fitted after each rollout. With
-``--bc-balance`` and the yield teacher, half of each minibatch are the steps where it steers round
-a car (MirrorTeacher.steered; then counted as "manoeuvres"), a few per cent of its labels (rows
-92-94 of docs/training.md). The shipped avoid (row 95) is fitted uniformly: balanced, the policy
-also steered round the turning family's oncoming car, which the teacher waits for.
+(the shipped avoid's recipe: docs/training.md, row 95). PPO learns the conflicts slowly: a
+success or a contact seconds later is its only signal about which of two similar scenes needed an
+evasion. Here a teacher that reads the world's state (training/teacher.YieldTeacher) labels every
+step, and the policy (the same SB3 MlpPolicy, 2 x 64 tanh, on the same lidar observation) is
+fitted to those labels by regression of its mean action (Ross et al. 2011, DAgger): the policy
+drives (``expert_share`` of the episodes are driven by the teacher), so the labels cover the
+states the policy itself reaches; all labelled steps are aggregated (the newest ``dataset_max``)
+and fitted after each rollout. With ``--bc-balance`` half of each minibatch are the steps where
+the teacher steers round a car (YieldTeacher.steered; then counted as "manoeuvres"), a few per
+cent of its labels (rows 92-94 of docs/training.md). The shipped avoid (row 95) is fitted
+uniformly: balanced, the policy also steered round the turning family's oncoming car, which the
+teacher waits for.
 
 The run folder is a PPO run's (training/train.py): config.json, progress.csv, checkpoints/
 step_<N>.zip + .vecnorm.pkl, latest.*; ``racecav train select`` and ``ship`` read it as they read
 a PPO run. The observation normalisation is the ``--init-from`` policy's, frozen (the policy
 keeps the input scale it was trained on). The value head and action std are kept as loaded,
 so a PPO run can continue from a checkpoint (``racecav train overtake --init-from``).
-``--expert mirror`` replaces the planner by the ``--init-from`` policy's own action, mirrored in
-the ``--mirror-families`` scenarios once their car is near on the ego's left (training/mirror.py;
-"manoeuvres" then counts the mirrored labels).
 progress.csv's columns: the imitation loss, the share of steps on which the policy's steering
-is within 0.05 rad of the planner's, the success rate of the scenario episodes the policy drove
+is within 0.05 rad of the teacher's, the success rate of the scenario episodes the policy drove
 and the share of its traffic episodes that ended in a contact, and the share of labels that are
-a manoeuvre rather than plain tracking.
+relabelled by the teacher (with --bc-balance: its steers round a car).
 """
 
 from __future__ import annotations
@@ -46,7 +42,7 @@ log = logging.getLogger("racecav.train")
 
 FIELDS = ["timesteps", "wall_s", "samples_per_s", "loss", "steer_agree", "scenario_success",
           "traffic_contacts", "episodes", "dataset", "manoeuvres"]
-STEER_TOL = 0.05  # rad: "agrees with the planner" in progress.csv
+STEER_TOL = 0.05  # rad: "agrees with the teacher" in progress.csv
 LOSS_SCALE = (0.5, 0.15)  # throttle, steering: the loss counts steering errors of 0.15 like 0.5 of throttle
 
 
@@ -68,7 +64,7 @@ def mean_action(policy, obs):
 
 
 def imitation_loss(pred, label, lo, hi, scale):
-    """Squared error of the policy's mean action ``pred`` against the planner's ``label`` (torch,
+    """Squared error of the policy's mean action ``pred`` against the teacher's ``label`` (torch,
     (B, 2)), zero where both lie at or beyond the same bound (the car does the same)."""
     import torch
 
@@ -91,31 +87,20 @@ def minibatches(rng: np.random.Generator, man: np.ndarray, size: int, balance: b
             yield rng.integers(0, len(man), size)
 
 
-def mirror_teacher(tc, fast):
-    """The ``--expert mirror`` (or ``track``, ``hold``) teacher: the frozen ``init_from`` policy (with its
-    normalisation) under the run's view settings, relabelled in the ``mirror_families`` scenarios."""
-    from racecav.training.mirror import MirrorTeacher
-    from racecav.training.select import policy_from_checkpoint
+def yield_teacher(tc, fast):
+    """The frozen ``init_from`` policy (with its normalisation) under the run's view settings,
+    relabelled by yield in the ``mirror_families`` scenarios (training/teacher.py)."""
+    from racecav.training.policy_io import policy_from_checkpoint
+    from racecav.training.teacher import YieldTeacher
 
     env = tc.env
     policy = policy_from_checkpoint(Path(tc.init_from), env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
     if policy.obs_dim != fast.observation_space.shape[0]:
         raise ValueError(f"--expert {tc.expert}: {tc.init_from} takes {policy.obs_dim} inputs, the env gives "
                          f"{fast.observation_space.shape[0]} (the teacher must see the run's view)")
-    names = lambda csv: [f.strip() for f in csv.split(",") if f.strip()]  # noqa: E731
-    teacher = MirrorTeacher(policy, fast, names(tc.mirror_families), names(tc.anchor_families), tc.mirror_seen,
-                            relabel=tc.expert, anchor_seen=tc.anchor_seen,
-                            teacher_brakes=source_env(Path(tc.init_from), "brake_below", None) is not None)
-    if tc.anchor_from:
-        # in its own stack and stride (MirrorTeacher.labels builds that view from the env's history)
-        a_stack, a_stride = (source_env(Path(tc.anchor_from), k, 1) for k in ("obs_stack", "obs_stride"))
-        anchor = policy_from_checkpoint(Path(tc.anchor_from), a_stack, env.brake_below, env.lidar, a_stride)
-        if anchor.obs_dim // a_stack != policy.obs_dim // env.obs_stack:
-            raise ValueError(f"--anchor-from: {tc.anchor_from} reads scans of {anchor.obs_dim // a_stack} rays, "
-                             f"the run's view {policy.obs_dim // env.obs_stack}")
-        teacher.set_anchor_policy(anchor, source_env(Path(tc.anchor_from), "brake_below", None) is not None)
-    return teacher
-
+    families = [f.strip() for f in tc.mirror_families.split(",") if f.strip()]
+    return YieldTeacher(policy, fast, families,
+                        teacher_brakes=source_env(Path(tc.init_from), "brake_below", None) is not None)
 
 
 class _Stop:
@@ -136,19 +121,12 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     import torch
     from tqdm import tqdm
 
-    from racecav.training.expert import Expert
-    from racecav.training.mirror import RELABELS
-
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    if tc.expert in RELABELS:
-        experts, teacher = [], mirror_teacher(tc, fast)
-    else:
-        experts, teacher = [Expert(w, tc.expert_horizon_s, commit_s=tc.expert_commit_s, seen_only=tc.expert_seen) for w in fast.worlds], None
+    teacher = yield_teacher(tc, fast)
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
-    tied = getattr(policy, "tied", None)  # a mirror-symmetric actor stays tied (training/symmetric.py)
     scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
     lo, hi = action_bounds(fast.world.car, tc.env.brake_below)
     lo_t, hi_t = torch.as_tensor(lo), torch.as_tensor(hi)
@@ -157,7 +135,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     cap = tc.dataset_max
     data_obs = np.zeros((cap, dim), np.float32)
     data_act = np.zeros((cap, 2), np.float32)
-    data_man = np.zeros(cap, bool)  # the planner chose a manoeuvre (not plain tracking)
+    data_man = np.zeros(cap, bool)  # relabelled by the teacher (with bc_balance: a steer round a car)
     size = head = 0
     samples, wall0, t0 = int(state["timesteps"]), float(state["wall_s"]), time.monotonic()
     next_ckpt = (samples // tc.checkpoint_every + 1) * tc.checkpoint_every
@@ -178,16 +156,11 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
             t_roll = time.monotonic()
             agree = succ = eps_s = contacts = eps_t = done_steps = 0
             for _ in range(tc.n_steps):
-                if teacher is not None:
-                    label, man = teacher.labels(venv.get_original_obs())
-                    if tc.bc_balance:  # yield's steering round a car: a few per cent of the labels
-                        man = teacher.steered()
-                else:
-                    label = np.concatenate([e.act() for e in experts])
-                    man = np.concatenate([e.last_best != 0 for e in experts])
-                # as the car acts (a policy teacher's steering saturates beyond the range; the
-                # planner's never does): the loss and the agreement then read a label beyond a
-                # bound as that bound
+                label, man = teacher.labels(venv.get_original_obs())
+                if tc.bc_balance:  # yield's steering round a car: a few per cent of the labels
+                    man = teacher.steered()
+                # as the car acts (a policy teacher's steering saturates beyond the range): the
+                # loss and the agreement then read a label beyond a bound as that bound
                 label = np.clip(label, lo, hi)
                 with torch.no_grad():
                     student = mean_action(policy, obs).numpy()
@@ -219,8 +192,6 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
-                if tied is not None:
-                    tied.project()
                 losses.append(float(loss.detach()))
             dt = time.monotonic() - t_roll
             row = {"timesteps": samples, "wall_s": round(wall0 + time.monotonic() - t0, 2),

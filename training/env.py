@@ -197,18 +197,17 @@ class OvertakeEnv(gym.Env):
                  n_obstacles: int | None = None, driver=None, control_period: float | None = None,
                  time_limit: float | None = None, world: str | None = None, car: str | None = None,
                  agent_speed_scale: float | None = None, scenarios: str | None = None,
-                 obs_stack: int | None = None, contact_penalty: float | None = None,
-                 brake_below: float | None = None, config: EnvConfig | None = None):
+                 obs_stack: int | None = None, brake_below: float | None = None, config: EnvConfig | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend=backend, heading=heading,
                                      n_obstacles=n_obstacles,
                                      driver=driver if isinstance(driver, str) else None,
                                      control_period_s=control_period, time_limit_s=time_limit,
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
-                                     scenarios=scenarios, obs_stack=obs_stack, contact_penalty=contact_penalty,
+                                     scenarios=scenarios, obs_stack=obs_stack,
                                      scenario_share=1.0 if scenarios else None, brake_below=brake_below)
         st = self.settings
-        for term in ("lane_keeping", "flow_reward", "hold_heading", "hold_track", "proximity_penalty"):
+        for term in ("flow_reward",):
             if getattr(st, term):
                 raise ValueError(f"{term}: a reward term of the training VecEnv only (training/vec_env.FastVecEnv, "
                                  "--preset fast); this env keeps the paper's reward")
@@ -259,7 +258,7 @@ class OvertakeEnv(gym.Env):
         p0 = self._progress()
         obs, (throttle, a_delta), collided, info = self.world.step(
             a, brake=brake_from_action(a[:, 0], self.settings.brake_below))
-        r = (float(reward(throttle, self._a_prev, a_delta)[0]) + self.settings.contact_penalty * bool(collided[0])
+        r = (float(reward(throttle, self._a_prev, a_delta)[0])
              + self.settings.progress_reward * (self._progress() - p0))
         self._a_prev = float(a_delta[0])
         self._steps += 1

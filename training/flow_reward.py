@@ -6,13 +6,13 @@ the ego's left, that turn runs ahead of the car in its own direction of travel a
 timings (paper right-to-left 100 %, conflict-timed 99 %, selection seeds); for a car from the
 left it enters the road the car is coming down, which passes only when the car has gone
 (conflict-timed 98 %, paper-timed 51 %). Its mirror image turns right and passes both timings
-from the left (98 / 99 %, ``racecav train mirror``): the evasion that does not depend on the
+from the left (98 / 99 %, measured by ``racecav train mirror`` at commit 3a95a65): the evasion that does not depend on the
 timing is the one with the car's flow. PPO does not find it from the left-turn habit (row 16's
 steering std is 0.09, and where its mean steering lies beyond the car's range the actuation
 clips the noise away), so this term pays for it while it is being learnt: W per metre the ego
 moves along the direction of travel of a crossing car (heading 45-135 deg from the ego's road)
 that moves and is within NEAR_M, negative against it. It reads the actors' state (privileged,
-training only, like lane_keeping.py); the policy sees only its scans. Measured:
+training only); the policy sees only its scans. Measured:
 docs/training.md, rows 25-27."""
 
 from __future__ import annotations

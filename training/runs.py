@@ -11,8 +11,42 @@ from pathlib import Path
 
 log = logging.getLogger("racecav.train")
 
+REPO = Path(__file__).resolve().parent.parent
+COMMITTED = REPO / "training" / "checkpoints"
+"""The committed run records (training/checkpoints/<run>/): what the report and a resume need."""
+REFERENCES_CSV = COMMITTED / "references.csv"
+"""The non-evading references on the selection split (``racecav train references``), beside the ablation."""
+IMAGES = REPO / "docs" / "img"
+"""Where a run's checkpoint plot goes (training_eval_<run>.png), beside the page that shows it."""
 RECORD_KEYS = ("git_commit", "started", "total_steps")
 """Keys of a run's config.json that describe the run, not its settings."""
+
+
+def checkpoints(run_dir: Path) -> list[Path]:
+    """A run's checkpoints, oldest first."""
+    return sorted((Path(run_dir) / "checkpoints").glob("step_*.zip"))
+
+
+def step_of(path: Path) -> int:
+    """The sample count of a checkpoint ``step_<N>.zip``."""
+    return int(Path(path).stem.split("_")[1])
+
+
+def save_run_record(run_dir: Path) -> Path:
+    """Copy what the report and a resume need into training/checkpoints/<run>/ (committed); the
+    checkpoint plot goes to docs/img/training_eval_<run>.png (the page shows it; one copy)."""
+    import shutil
+
+    dst = COMMITTED / Path(run_dir).name
+    dst.mkdir(parents=True, exist_ok=True)
+    for name in ("config.json", "progress.csv", "eval.csv", "best.json", "curriculum.csv",
+                 "latest.json", "latest.zip", "latest.vecnorm.pkl"):
+        if (Path(run_dir) / name).is_file():
+            shutil.copyfile(Path(run_dir) / name, dst / name)
+    if (Path(run_dir) / "eval.png").is_file():
+        IMAGES.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(Path(run_dir) / "eval.png", IMAGES / f"training_eval_{Path(run_dir).name}.png")
+    return dst
 
 
 def run_dir_of(zip_path: Path) -> Path:
@@ -47,11 +81,53 @@ def load_run_config(run_dir: Path):
         tl = data.pop("time_limit", None)
         if tl is not None:
             env["time_limit_s"] = tl
-        for k in ("scenarios", "scenario_share", "contact_penalty", "obs_stack"):
+        for k in ("scenarios", "scenario_share", "contact_penalty", "obs_stack"):  # (contact_penalty: removed below)
             if k in data:
                 env[k] = data.pop(k)
         data["env"] = env
+    drop_removed(data, run_dir)
     return TrainConfig.model_validate(data), record
+
+
+EXPERIMENTS_COMMIT = "3a95a65"
+"""The commit whose training/ still holds the ablation's rejected experiments (docs/training.md)."""
+_ANY = object()
+REMOVED_SETTINGS = {
+    "mirror_symmetric": False, "mirror_augment": False, "steer_bound_coef": 0.0, "privileged_critic": False,
+    "hold_until_seen": False, "hold_families": _ANY, "hold_through": _ANY, "expert_horizon_s": _ANY,
+    "expert_seen": False, "expert_commit_s": None, "mirror_seen": False, "anchor_families": "",
+    "anchor_from": None, "anchor_seen": False, "aux_seen": 0.0, "bc_coef": 0.0, "bc_label_steps": _ANY,
+    "bc_grad_steps": _ANY, "bc_learning_rate": _ANY,
+}
+"""TrainConfig settings of rejected ablation rows, now gone, with the value that turned each off
+(_ANY: it acted only together with another one here)."""
+REMOVED_ENV_SETTINGS = {"contact_penalty": 0.0, "lane_keeping": 0.0, "lane_keeping_horizon_s": _ANY,
+                        "hold_heading": 0.0, "hold_track": 0.0, "proximity_penalty": 0.0}
+"""The same for EnvConfig."""
+
+
+def drop_removed(data: dict, run_dir) -> None:
+    """Take the settings of removed experiments out of a run's config.json data, in place: turned
+    off they changed nothing; turned on, the run cannot be reproduced by this code.
+
+    :raises ValueError: naming the setting and the commit that still has its code.
+    """
+    def check(d: dict, removed: dict, prefix: str) -> None:
+        for k, off in removed.items():
+            if k in d:
+                v = d.pop(k)
+                if off is not _ANY and v != off:
+                    raise ValueError(f"{run_dir}/config.json: {prefix}{k} = {v!r} is an experiment removed from "
+                                     f"training/ (docs/training.md); its code is at commit {EXPERIMENTS_COMMIT}")
+
+    check(data, REMOVED_SETTINGS, "")
+    check(data.get("env", {}), REMOVED_ENV_SETTINGS, "env.")
+    # the teacher of a PPO run was never used (only dagger runs imitate); dagger's other teachers are gone
+    if data.get("expert") not in (None, "yield"):
+        if data.get("stage") == "dagger":
+            raise ValueError(f"{run_dir}/config.json: expert = {data['expert']!r} is a teacher removed from "
+                             f"training/ (docs/training.md); its code is at commit {EXPERIMENTS_COMMIT}")
+        data.pop("expert")
 
 
 def save_checkpoint(run_dir: Path, model, vec_normalize, wall_s: float, final: bool = False) -> Path:

@@ -2,7 +2,7 @@
 
     racecav train racing   [--steps N] [--run-dir DIR] [--resume] [--preset paper|fast] [...]
     racecav train overtake --heading default|reversed [--driver policy:racing] [...]
-    racecav train dagger   --init-from POLICY.zip [...]  (imitate a planner, training/dagger.py)
+    racecav train dagger   --init-from POLICY.zip [...]  (imitate the yield teacher, training/dagger.py)
     racecav train select   --run-dir DIR [--trials N]      (training/select.py)
     racecav train ship     --run-dir DIR --checkpoint STEP --name racing|default|reversed
     racecav train report                                   (docs/training.md)
@@ -36,31 +36,11 @@ from pathlib import Path
 
 from racecav.common.bench import git_commit
 from racecav.common.lidar import VIEWS
-from racecav.training.mirror import RELABELS
+from racecav.training.flags import DAGGER_FLAGS, ENV_FLAGS, TRAIN_FLAGS
 from racecav.training.runs import load_run_config, save_checkpoint, source_env, truncate_csv
 
 log = logging.getLogger("racecav.train")
 
-TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_rate", "gae_lambda",
-               "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "normalize", "checkpoint_every",
-               "init_from", "init_std", "mirror_symmetric", "mirror_augment", "steer_bound_coef",
-               "sde_sample_freq", "hidden", "privileged_critic", "hold_until_seen", "hold_families", "hold_through")
-"""TrainConfig fields that are flags of ``racecav train racing|overtake`` (--name-with-dashes)."""
-DAGGER_FLAGS = ("expert", "mirror_families", "mirror_seen", "expert_share", "expert_horizon_s", "expert_commit_s", "expert_seen", "grad_steps", "dataset_max",
-                "bc_balance")
-"""TrainConfig fields that are flags of ``racecav train dagger``."""
-IMITATION_FLAGS = ("bc_coef", "bc_label_steps", "bc_grad_steps", "bc_learning_rate", "expert", "mirror_families", "mirror_seen", "anchor_families", "anchor_from", "bc_balance",
-                   "anchor_seen", "aux_seen", "expert_horizon_s", "expert_commit_s", "expert_seen", "dataset_max")
-"""TrainConfig fields that are flags of ``racecav train overtake`` only (training/imitation_term.py)."""
-ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
-             "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",
-             "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
-             "contact_penalty": "--contact-penalty", "lane_keeping": "--lane-keeping",
-             "lane_keeping_horizon_s": "--lane-keeping-horizon", "flow_reward": "--flow-reward",
-             "hold_heading": "--hold-heading", "hold_track": "--hold-track", "proximity_penalty": "--proximity-penalty",
-             "progress_reward": "--progress-reward", "brake_below": "--brake-below", "curriculum": "--curriculum",
-             "curriculum_boost": "--curriculum-boost", "lidar": "--lidar"}
-"""EnvConfig fields that are flags (field -> flag)."""
 CSV_FIELDS = ["timesteps", "wall_s", "samples_per_s", "ep_rew_mean", "ep_len_mean", "ep_count",
               "approx_kl", "clip_fraction", "entropy_loss", "value_loss", "policy_gradient_loss",
               "explained_variance", "std", "learning_rate"]
@@ -76,73 +56,70 @@ def _flag_type(annotation):
     return t if t in (float, str) else str
 
 
-def add_stage_flags(p, names) -> None:
-    from racecav.common.config import TrainConfig
+def field_help(model, name: str) -> str:
+    """A config field's flag help: its docstring and its default (a preset may change it)."""
+    f = model.model_fields[name]
+    default = f.default if not isinstance(f.default, dict) else (f.default or "{}")
+    if name in TRAIN_PRESETS_KEYS:
+        return f"{f.description} (default {default}; --preset fast: {TRAIN_PRESETS_KEYS[name]})"
+    return f"{f.description} (default {default})"
 
+
+TRAIN_PRESETS_KEYS: dict = {}
+"""TrainConfig field -> its value under ``--preset fast`` (filled on first use)."""
+
+
+def add_config_flags(p, model, names, dest=lambda n: n, flags=None) -> None:
+    """One flag per config field: type, help and default from common/config.py."""
     for name in names:
-        f = TrainConfig.model_fields[name]
+        f = model.model_fields[name]
+        flag = (flags or {}).get(name, "--" + name.replace("_", "-"))
+        alias = ("--lr",) if name == "learning_rate" else ()
         if f.annotation is bool:
-            p.add_argument("--" + name.replace("_", "-"), dest=name, action=argparse.BooleanOptionalAction,
-                           default=None, help=f.description)
+            p.add_argument(flag, *alias, dest=dest(name), action=argparse.BooleanOptionalAction, default=None,
+                           help=field_help(model, name))
         else:
-            p.add_argument("--" + name.replace("_", "-"), dest=name, type=_flag_type(f.annotation), help=f.description)
+            p.add_argument(flag, *alias, dest=dest(name), type=_flag_type(f.annotation), help=field_help(model, name))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from racecav.common.config import TRAIN_PRESETS, EnvConfig, TrainConfig
 
+    fast = TRAIN_PRESETS["fast"]
+    TRAIN_PRESETS_KEYS.update({k: v for k, v in fast.items() if k != "env"})
     sub = parser.add_subparsers(dest="train_cmd", required=True, metavar="STAGE")
+
     def add_flags(p) -> None:
         p.add_argument("--steps", type=float, default=1e6, help="total samples of the run (default 1e6)")
         p.add_argument("--run-dir", type=Path, help="run folder (default runs/<stage>[-<heading>])")
         p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from latest")
         p.add_argument("--preset", choices=list(TRAIN_PRESETS), default="paper",
-                       help="paper (the paper's PPO setting, one env) | fast (64 batched envs; docs/training.md)")
+                       help="paper (the paper's PPO setting, one env) | fast (64 batched envs; docs/training.md) "
+                            "(default paper)")
         p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
-        # every setting is a field of TrainConfig / EnvConfig (common/config.py): flags, help and
-        # the run record come from there
-        for name in TRAIN_FLAGS:
-            f = TrainConfig.model_fields[name]
-            flag = "--" + name.replace("_", "-")
-            if f.annotation is bool:
-                p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=f.description)
-            elif name == "learning_rate":
-                p.add_argument(flag, "--lr", dest=name, type=float, help=f.description)
-            else:
-                p.add_argument(flag, dest=name, type=_flag_type(f.annotation), help=f.description)
-        for name, flag in ENV_FLAGS.items():
-            f = EnvConfig.model_fields[name]
-            if f.annotation is bool:
-                p.add_argument(flag, dest=f"env_{name}", action=argparse.BooleanOptionalAction, default=None,
-                               help=f.description)
-            else:
-                p.add_argument(flag, dest=f"env_{name}", type=_flag_type(f.annotation), help=f.description)
+        # every setting is a field of TrainConfig / EnvConfig (common/config.py): flags, help,
+        # defaults and the run record come from there
+        add_config_flags(p, TrainConfig, TRAIN_FLAGS)
+        add_config_flags(p, EnvConfig, ENV_FLAGS, dest=lambda n: f"env_{n}", flags=ENV_FLAGS)
 
     for stage, help_ in (("racing", "stage 1: the racing policy on the empty track (0 obstacles)"),
-                         ("overtake", "stage 2: overtaking with 15 obstacle cars driven by the racing policy")):
+                         ("overtake", "stage 2: overtaking among obstacle cars (and scenario episodes)")):
         p = sub.add_parser(stage, help=help_, description=help_)
         add_flags(p)
         p.set_defaults(stage=stage)
-        if stage == "overtake":
-            add_stage_flags(p, IMITATION_FLAGS)
-    p = sub.add_parser("dagger", help="imitate a privileged planner (DAgger) on the overtake env (training/dagger.py)")
+    help_ = "the yield teacher fitted by DAgger on the overtake env (training/dagger.py): the shipped avoid's recipe"
+    p = sub.add_parser("dagger", help=help_, description=help_)
     add_flags(p)
-    add_stage_flags(p, DAGGER_FLAGS)
+    add_config_flags(p, TrainConfig, DAGGER_FLAGS)
     p.set_defaults(stage="dagger")
-    from racecav.training import average, label_fit, mirror, probe, seen_filter, select, stop_probe  # cheap modules: argument definitions only
+    from racecav.training import select  # cheap: argument definitions only
 
     select.add_subcommands(sub)
-    probe.add_subcommands(sub)
-    mirror.add_subcommands(sub)
-    seen_filter.add_subcommands(sub)
-    label_fit.add_subcommands(sub)
-    average.add_subcommands(sub)
-    stop_probe.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
     p.add_argument("--out", type=Path, help="output folder (default runs/onnx/NAME)")
-    p.add_argument("--car", default="slash", help="car file (lidar layout, steering mapping in the sidecar)")
+    p.add_argument("--car", default="slash", help="car file (lidar layout, steering mapping in the sidecar) (default slash)")
     p.set_defaults(stage="export")
 
 
@@ -153,30 +130,6 @@ def run(args, cfg) -> int:
         return train_dagger(args, cfg)
     if args.train_cmd == "export":
         return export_onnx(args)
-    if args.train_cmd == "probe":
-        from racecav.training.probe import probe
-
-        return probe(args, cfg)
-    if args.train_cmd == "seen-filter":
-        from racecav.training.seen_filter import seen_filter
-
-        return seen_filter(args, cfg)
-    if args.train_cmd == "label-fit":
-        from racecav.training.label_fit import run as label_fit
-
-        return label_fit(args, cfg)
-    if args.train_cmd == "stop-probe":
-        from racecav.training.stop_probe import run as stop_probe
-
-        return stop_probe(args, cfg)
-    if args.train_cmd == "average":
-        from racecav.training.average import run as average
-
-        return average(args, cfg)
-    if args.train_cmd == "mirror":
-        from racecav.training.mirror import mirror
-
-        return mirror(args, cfg)
     from racecav.training import select
 
     return select.run(args, cfg)
@@ -226,7 +179,7 @@ def config_from_args(args, env_base=None):
     if env.get("scenarios") and flags.get("scenario_share") is None:
         env["scenario_share"] = 0.5
     data = {**{k: v for k, v in preset.items() if k != "env"}, "stage": args.stage, "preset": args.preset,
-            **{k: getattr(args, k) for k in TRAIN_FLAGS + DAGGER_FLAGS + IMITATION_FLAGS if getattr(args, k, None) is not None}, "env": env}
+            **{k: getattr(args, k) for k in TRAIN_FLAGS + DAGGER_FLAGS if getattr(args, k, None) is not None}, "env": env}
     if data.get("init_from") is not None:
         data["init_from"] = str(data["init_from"])
     try:
@@ -241,19 +194,13 @@ def make_venv(tc, seed: int):
 
     from racecav.training.vec_env import FastVecEnv
 
-    return VecMonitor(FastVecEnv(config=tc.env, seed=seed, privileged=tc.privileged_critic,
-                                 hold_until_seen=tc.hold_until_seen, hold_families=tc.hold_families,
-                                 hold_through=tc.hold_through))
+    return VecMonitor(FastVecEnv(config=tc.env, seed=seed))
 
 
 def _ppo_kwargs(tc) -> dict:
     import torch
 
     policy_kwargs = dict(net_arch=[tc.hidden, tc.hidden], activation_fn=torch.nn.Tanh)
-    if tc.mirror_symmetric:
-        policy_kwargs["obs_stack"] = tc.env.obs_stack
-    if tc.privileged_critic:
-        policy_kwargs["actor_inputs"] = tc.env.obs_stack * VIEWS[tc.env.lidar].n_rays
     sde = {} if tc.sde_sample_freq is None else dict(use_sde=True, sde_sample_freq=tc.sde_sample_freq)
     return dict(**sde, n_steps=tc.n_steps, batch_size=tc.batch_size, n_epochs=tc.n_epochs, gamma=tc.gamma,
                 learning_rate=tc.learning_rate, gae_lambda=tc.gae_lambda, clip_range=tc.clip_range,
@@ -261,39 +208,10 @@ def _ppo_kwargs(tc) -> dict:
                 policy_kwargs=policy_kwargs)
 
 
-def _algorithm(tc):
-    """SB3's PPO, its mirror-augmented version (training/augment.py) or its version with a loss on
-    the steering mean beyond the car's range (training/bounds.py)."""
-    from stable_baselines3 import PPO
-
-    if tc.mirror_augment:
-        from racecav.training.augment import mirror_augmented_ppo
-
-        return mirror_augmented_ppo()
-    if tc.steer_bound_coef > 0:
-        from racecav.training.bounds import bounded_ppo
-
-        return bounded_ppo()
-    return PPO
-
-
-def _policy_class(tc):
-    """SB3's MlpPolicy, its mirror-symmetric version (training/symmetric.py) or its version with a
-    privileged critic (training/privileged.py)."""
-    if tc.privileged_critic:
-        from racecav.training.privileged import PrivilegedCriticPolicy
-
-        return PrivilegedCriticPolicy
-    if not tc.mirror_symmetric:
-        return "MlpPolicy"
-    from racecav.training.symmetric import MirrorMlpPolicy
-
-    return MirrorMlpPolicy
-
-
 # ----------------------------------------------------------------------------------- training
 def train(args, cfg) -> int:
     import torch
+    from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     torch.set_num_threads(1)
@@ -315,11 +233,11 @@ def train(args, cfg) -> int:
         else:
             venv = init_normalization(VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma), tc)
     if args.resume:
-        model = _algorithm(tc).load(run_dir / "latest.zip", env=venv, device="cpu")
+        model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         truncate_csv(run_dir / "progress.csv", model.num_timesteps, CSV_FIELDS)
         log.info("resumed %s at %d samples", run_dir, model.num_timesteps)
     else:
-        model = _algorithm(tc)(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         if tc.init_from:
             try:
                 init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
@@ -330,27 +248,9 @@ def train(args, cfg) -> int:
             except ValueError as e:  # a policy these settings cannot start from
                 print(f"racecav train: {e}")
                 return 2
-            if tc.mirror_symmetric:  # the nearest symmetric actor to the loaded one
-                model.policy.tied.project()
-    if tc.mirror_augment:
-        model.mirror_obs_stack = tc.env.obs_stack
-    if tc.steer_bound_coef > 0:
-        from racecav.training.bounds import steer_bounds
-        from racecav.training.env import env_car
-
-        model.bound_coef, model.bounds = tc.steer_bound_coef, steer_bounds(env_car(tc.env))
     _configure_logger(model, run_dir)
     cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
     callbacks = [cb]
-    if tc.mirror_symmetric:
-        from racecav.training.symmetric import symmetric_stats_callback
-
-        callbacks.insert(0, symmetric_stats_callback(tc.env.obs_stack))
-    if tc.bc_coef > 0:
-        from racecav.training.imitation_term import make_callback
-
-        # first: its fit after each update goes into the checkpoint the train callback writes next
-        callbacks.insert(0, make_callback(run_dir, tc, venv.unwrapped, seed=tc.seed + state["timesteps"]))
     remaining = total - model.num_timesteps
     if remaining <= 0:
         log.info("run already at %d >= %d samples", model.num_timesteps, total)
@@ -386,55 +286,12 @@ def open_run(args, cfg, run_dir: Path):
     except ValueError as e:
         print(f"racecav train: {e}")
         return None
-    if tc.mirror_symmetric and tc.mirror_augment:
-        print("racecav train: --mirror-symmetric and --mirror-augment: a symmetric actor gains nothing from "
-              "its reflected rollouts (choose one)")
-        return None
-    if tc.steer_bound_coef > 0 and (tc.stage == "dagger" or tc.mirror_augment or tc.ent_coef <= 0):
-        print("racecav train: --steer-bound-coef adds a term to PPO's own loss through its entropy term: it needs "
-              "--ent-coef > 0, and neither dagger nor --mirror-augment (training/bounds.py)")
-        return None
-    if tc.sde_sample_freq is not None and (tc.stage == "dagger" or tc.mirror_symmetric):
-        print("racecav train: --sde-sample-freq (gSDE) explores in PPO's rollouts, with SB3's MlpPolicy "
-              "(use it with racecav train overtake, without --mirror-symmetric)")
-        return None
-    if tc.privileged_critic and (tc.stage == "dagger" or tc.mirror_symmetric or tc.mirror_augment or tc.bc_coef > 0):
-        print("racecav train: --privileged-critic is a PPO critic for racecav train overtake's rollouts, without "
-              "--mirror-symmetric, --mirror-augment and --bc-coef (their observations are the scans alone)")
-        return None
-    if (tc.hold_families or tc.hold_through) and not tc.hold_until_seen:
-        print("racecav train: --hold-families and --hold-through name what --hold-until-seen holds; add --hold-until-seen")
-        return None
-    if tc.hold_until_seen and (tc.stage == "dagger" or not tc.env.scenarios):
-        print("racecav train: --hold-until-seen drives PPO's scenario episodes (racecav train overtake --scenarios ...)")
-        return None
-    if tc.stage == "dagger" and tc.mirror_augment:
-        print("racecav train dagger: --mirror-augment reflects PPO's rollouts (use it with racecav train overtake)")
+    if tc.sde_sample_freq is not None and tc.stage == "dagger":
+        print("racecav train: --sde-sample-freq (gSDE) explores in PPO's rollouts (use it with racecav train overtake)")
         return None
     if tc.stage == "dagger" and (not tc.init_from or not tc.normalize):
         print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
               "the imitation keeps that policy's input statistics")
-        return None
-    if tc.aux_seen > 0 and (tc.bc_coef <= 0 or tc.expert != "hold"):
-        print("racecav train: --aux-seen is fitted on --expert hold's labelled steps; add --bc-coef C --expert hold")
-        return None
-    if tc.anchor_seen and (tc.bc_coef <= 0 or tc.expert != "hold"):
-        print("racecav train: --anchor-seen anchors the steps after --expert hold's labels; add --bc-coef C --expert hold")
-        return None
-    if tc.anchor_from and (tc.bc_coef <= 0 or not tc.anchor_families):
-        print("racecav train: --anchor-from labels the anchored steps: add --bc-coef C --anchor-families F")
-        return None
-    if tc.anchor_from and not Path(tc.anchor_from).is_file():
-        print(f"racecav train: --anchor-from {tc.anchor_from}: no such file")
-        return None
-    if tc.bc_coef > 0 and tc.expert in RELABELS and not tc.init_from:
-        print(f"racecav train: --bc-coef with --expert {tc.expert} needs --init-from (the frozen teacher)")
-        return None
-    if tc.bc_coef > 0 and tc.expert == "planner" and tc.bc_label_steps < 1:
-        print("racecav train: --bc-coef with the planner needs --bc-label-steps >= 1 (its only labels)")
-        return None
-    if tc.bc_coef > 0 and tc.expert == "planner" and tc.env.n_obstacles and tc.env.driver != "centerline":
-        print("racecav train: --bc-coef needs traffic the planner can predict (--driver centerline)")
         return None
     record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
@@ -464,16 +321,11 @@ def train_dagger(args, cfg) -> int:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
     else:
         venv = init_normalization(VecNormalize(fast, norm_obs=True, norm_reward=False, gamma=tc.gamma), tc)
-        model = PPO(_policy_class(tc), venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
+        model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
-        if tc.mirror_symmetric:  # the nearest symmetric actor, on symmetric (then frozen) statistics
-            from racecav.training.symmetric import symmetrize_stats
-
-            model.policy.tied.project()
-            symmetrize_stats(venv.obs_rms, tc.env.obs_stack)
     try:
         return imitate(model, venv, tc, run_dir, state, int(args.steps), progress=not args.no_progress)
-    except ValueError as e:  # a teacher that cannot label this env (training/mirror.py)
+    except ValueError as e:  # a teacher that cannot label this env (training/teacher.py)
         print(f"racecav train dagger: {e}")
         return 2
 
@@ -482,8 +334,6 @@ def init_normalization(venv, tc):
     """Start a new run's VecNormalize ``venv`` from the statistics beside ``tc.init_from`` (if
     any): the weights expect the statistics they were trained with; a 1-scan policy's serve every
     scan of a stack."""
-    import numpy as np
-
     init_norm = Path(tc.init_from).with_suffix(".vecnorm.pkl") if tc.init_from else None
     if init_norm is None or not init_norm.is_file():
         return venv
@@ -497,10 +347,6 @@ def init_normalization(venv, tc):
     # a new view's outer rays start from the nearest old ray's statistics: a smaller count lets
     # them adapt within ~1 M samples
     venv.obs_rms.count = old.obs_rms.count if src_view == view else min(old.obs_rms.count, 1e5)
-    extra = venv.observation_space.shape[0] - venv.obs_rms.mean.shape[0]
-    if extra > 0:  # the privileged critic's inputs: scaled to order 1 already (training/privileged.py)
-        venv.obs_rms.mean = np.concatenate([venv.obs_rms.mean, np.zeros(extra)])
-        venv.obs_rms.var = np.concatenate([venv.obs_rms.var, np.ones(extra)])
     return venv
 
 
@@ -583,18 +429,9 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     dst = model.policy.state_dict()
     n_stack = dst["mlp_extractor.policy_net.0.weight"].shape[1] // view.n_rays
     width = dst["mlp_extractor.policy_net.0.weight"].shape[0]
-    if src["mlp_extractor.policy_net.0.weight"].shape[0] != width:  # a narrower source: same function, wider
-        from racecav.training.widen import widen
-
-        src = widen(src, width)
-    critic = "mlp_extractor.value_net.0.weight"
-    # a privileged critic reads more than the scans (training/privileged.py): those extra inputs
-    # start at zero weight, so the critic starts as the source's
-    extra = dst[critic].shape[1] - dst["mlp_extractor.policy_net.0.weight"].shape[1]
-    if extra and src[critic].shape[1] == src["mlp_extractor.policy_net.0.weight"].shape[1]:
-        dst = {**dst, critic: dst[critic][:, :-extra]}
-    else:
-        extra = 0
+    if src["mlp_extractor.policy_net.0.weight"].shape[0] != width:
+        raise ValueError(f"--init-from {path}: {src['mlp_extractor.policy_net.0.weight'].shape[0]} hidden units, "
+                         f"the model {width} (--hidden)")
     for k, v in src.items():
         if k == "log_std":  # below: its shape differs with gSDE
             continue
@@ -607,8 +444,6 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
     if src_stride != stride:
         for k in [k for k in src if k.endswith("net.0.weight")]:
             src[k] = torch.as_tensor(restride(src[k].numpy(), view.n_rays, stride / src_stride), dtype=src[k].dtype)
-    if extra:
-        src[critic] = torch.cat([src[critic], src[critic].new_zeros(src[critic].shape[0], extra)], 1)
     if std is not None:
         src["log_std"] = torch.full_like(src["log_std"], float(np.log(std)))
     if src["log_std"].shape != dst["log_std"].shape:  # one of the two explores with gSDE

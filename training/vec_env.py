@@ -25,37 +25,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward
-from racecav.training.expert import latch_seen, tracking_steer
 from racecav.training.flow_reward import flow_reward, flow_weights
-from racecav.training.hold_heading import HoldRoad
-from racecav.training.privileged import N_PRIVILEGED, privileged_features
-from racecav.training.proximity import proximity_penalty
-
-
-def family_mask(worlds, names: str, what: str = "hold_families") -> list[np.ndarray | None]:
-    """Per FastWorld of ``worlds``: (files,) bool, the files whose family is one of ``names``
-    (comma-separated: a suite, ``conflicts``; a family of every suite, ``cross-left``; or of one,
-    ``conflicts/cross-left``; "": every file); None for a world without scenarios. A name that
-    matches no family of any of the worlds is an error that starts with ``what`` (the setting it
-    came from); a world may lack it (the road world has no crossings)."""
-    wanted = [n.strip() for n in names.split(",") if n.strip()]
-    out, matched = [], set()
-    for w in worlds:
-        if w.actors is None:
-            out.append(None)
-            continue
-        fams = w.scenario_families
-        if not wanted:
-            out.append(np.ones(len(fams), dtype=bool))
-            continue
-        parts = [(f, *f.rpartition("/")[::2]) for f in fams]  # (suite/family, suite, family)
-        matched |= {n for n in wanted if any(n in p for p in parts)}
-        out.append(np.array([any(n in p for n in wanted) for p in parts]))
-    unknown = [n for n in wanted if n not in matched]
-    if unknown:
-        have = sorted({f for w in worlds if w.actors is not None for f in w.scenario_families})
-        raise ValueError(f"{what}: {', '.join(unknown)} is not a suite or family of the scenarios ({', '.join(have)})")
-    return out
 
 
 class FamilyCurriculum:
@@ -112,15 +82,6 @@ class FastVecEnv(VecEnv):
     :param config: EnvConfig to start from; keyword overrides as in OvertakeEnv (heading,
         n_obstacles, driver, control_period, time_limit, world, car, agent_speed_scale,
         parallel: the lidar on numba's threads).
-    :param privileged: append the critic's privileged features to each observation (after the
-        scans; training/privileged.py).
-    :param hold_until_seen: PPO's rollouts only (TrainConfig.hold_until_seen): in a scenario world
-        the ego is driven straight along its road at full throttle, whatever the action, while
-        ``held`` says so (no car has yet returned a ray of its scan this episode and it is short
-        of its conflict point). Evaluation never sets it.
-    :param hold_families: the scenario families it holds (TrainConfig.hold_families; "": all).
-    :param hold_through: of those, the families held to the conflict point even once a car is
-        in view (TrainConfig.hold_through; "": none).
     :param seed: seed of the reset randomisation (also settable with ``seed()``).
     """
 
@@ -130,10 +91,8 @@ class FastVecEnv(VecEnv):
                  world: str | None = None, car: str | None = None,
                  agent_speed_scale: float | None = None, parallel: bool | None = None,
                  scenarios: str | None = None, scenario_share: float | None = None,
-                 contact_penalty: float | None = None, obs_stack: int | None = None,
-                 progress_reward: float | None = None, brake_below: float | None = None,
-                 lane_keeping: float | None = None, privileged: bool = False, seed: int | None = None,
-                 hold_until_seen: bool = False, hold_families: str = "", hold_through: str = ""):
+                 obs_stack: int | None = None, progress_reward: float | None = None,
+                 brake_below: float | None = None, seed: int | None = None):
         drv_obj = driver if driver is not None and not isinstance(driver, str) else None
         self.settings = env_settings(config, backend="fast", heading=heading,
                                      n_obstacles=n_obstacles,
@@ -141,21 +100,16 @@ class FastVecEnv(VecEnv):
                                      control_period_s=control_period, time_limit_s=time_limit,
                                      world=world, car=car, agent_speed_scale=agent_speed_scale,
                                      n_envs=n_envs, parallel=parallel, scenarios=scenarios,
-                                     scenario_share=scenario_share, contact_penalty=contact_penalty,
-                                     obs_stack=obs_stack, progress_reward=progress_reward, brake_below=brake_below,
-                                     lane_keeping=lane_keeping)
+                                     scenario_share=scenario_share, obs_stack=obs_stack,
+                                     progress_reward=progress_reward, brake_below=brake_below)
         # the batch: traffic worlds first, then one scenario world per scenario world geometry
         self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
         self.world = self.worlds[0]
         n = sum(w.n_envs for w in self.worlds)
         spec = self.world.spec
         self.n_stack, self.stride = self.settings.obs_stack, self.settings.obs_stride
-        self.privileged = privileged
         n_obs = self.n_stack * spec.n_rays
         low, high = np.full(n_obs, spec.range_min, np.float32), np.full(n_obs, spec.range_max, np.float32)
-        if privileged:
-            low = np.concatenate([low, np.full(N_PRIVILEGED, -np.inf, np.float32)])
-            high = np.concatenate([high, np.full(N_PRIVILEGED, np.inf, np.float32)])
         obs_space = gym.spaces.Box(low, high, dtype=np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
@@ -170,22 +124,6 @@ class FastVecEnv(VecEnv):
         # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
         self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
         self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost) if self.settings.curriculum and self.is_scenario.any() else None
-        self.lane_keeping = None
-        if self.settings.lane_keeping and self.is_scenario.any():
-            from racecav.training.lane_keeping import LaneKeeping
-
-            self.lane_keeping = LaneKeeping(self.worlds, self.slices, self.settings.lane_keeping,
-                                            self.settings.lane_keeping_horizon_s)
-        self.hold_heading = HoldRoad.from_settings(n, self.settings) if self.is_scenario.any() else None
-        self.hold_until_seen = hold_until_seen and bool(self.is_scenario.any())
-        held = self.hold_until_seen
-        self._hold_file = family_mask(self.worlds, hold_families) if held else [None] * len(self.worlds)
-        self._through = (family_mask(self.worlds, hold_through, "hold_through") if held and hold_through
-                         else [None] * len(self.worlds))
-        self._seen = np.zeros(n, dtype=bool)  # hold_until_seen: a car has been in view this episode
-        self.held = np.zeros(n, dtype=bool)
-        """(N,) the worlds whose next action is overridden (hold_until_seen), for the state of the
-        newest observation: the imitation term's ``--expert hold`` labels read it."""
         if seed is not None:
             self.seed(seed)
 
@@ -202,35 +140,13 @@ class FastVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.a_prev[:] = 0.0
-        if self.hold_heading is not None:
-            self.hold_heading.seen[:] = False
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._stack[:] = obs[:, None]
-        self._update_held()
         return self._stacked()
 
-    def _update_held(self) -> None:
-        """``held`` for the worlds' current state (after a step and its resets)."""
-        if not self.hold_until_seen:
-            return
-        for w, sl, files, through in zip(self.worlds, self.slices, self._hold_file, self._through):
-            if files is not None:
-                mine = files[w.scenario_index]
-                # held-through worlds are held whatever is in view: no scan for their latch
-                thru = np.zeros(len(mine), bool) if through is None else through[w.scenario_index]
-                envs = np.flatnonzero(mine & ~thru)
-                seen = self._seen[sl]  # a view: updated in place
-                seen[envs] = latch_seen(w, seen[envs], envs)
-                # every scenario's ego drives along +x to its conflict point at x = 0
-                self.held[sl] = mine & (~seen | thru) & (w.x[:, 0] < 0.0)
-
     def _stacked(self) -> np.ndarray:
-        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
-        (then the critic's privileged features of the worlds' current state, if asked)."""
-        obs = self.stacked_view(self.n_stack, self.stride)
-        if self.privileged:
-            return np.concatenate([obs, np.concatenate([privileged_features(w) for w in self.worlds])], axis=1)
-        return obs
+        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened."""
+        return self.stacked_view(self.n_stack, self.stride)
 
     def stacked_view(self, n_stack: int, stride: int) -> np.ndarray:
         """The raw scans as a policy with its own ``n_stack`` and ``stride`` sees them (e.g. a frozen
@@ -248,17 +164,7 @@ class FastVecEnv(VecEnv):
 
     def step_wait(self) -> VecEnvStepReturn:
         obs_parts, thr, a_d, col, trunc, succ, dprog = [], [], [], [], [], [], []
-        if self.hold_until_seen and self.held.any():  # straight at full throttle until a car is seen
-            self._actions = self._actions.copy()
-            for w, sl in zip(self.worlds, self.slices):
-                h = self.held[sl]
-                if h.any():
-                    self._actions[sl][h] = np.stack([np.ones(int(h.sum())), tracking_steer(w)[h]], axis=1)
-        # from the state the actions are taken in
-        lane = self.lane_keeping.penalty(self._actions) if self.lane_keeping is not None else None
         flow = [] if self.settings.flow_reward else None
-        hold = [] if self.hold_heading is not None else None
-        near = [] if self.settings.proximity_penalty else None
         for w, sl in zip(self.worlds, self.slices):
             p0 = w.progress()
             if flow is not None:  # the crossing cars' flow before the step, the ego's motion over it
@@ -269,10 +175,6 @@ class FastVecEnv(VecEnv):
             dprog.append(w.progress() - p0)
             if flow is not None:
                 flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
-            if hold is not None:  # the state the step led to: its heading, and what the new scan shows
-                hold.append(self.hold_heading.step(w, sl, a[:, 0]))
-            if near is not None:
-                near.append(proximity_penalty(self.settings.proximity_penalty, w))
             obs_parts.append(o)
             thr.append(t)
             a_d.append(d)
@@ -283,18 +185,10 @@ class FastVecEnv(VecEnv):
         collided, truncated = np.concatenate(col), np.concatenate(trunc)
         a_delta = np.concatenate(a_d)
         rewards = reward(np.concatenate(thr), self.a_prev, a_delta)
-        if self.settings.contact_penalty:
-            rewards = rewards + np.float32(self.settings.contact_penalty) * collided
         if self.settings.progress_reward:
             rewards = rewards + (self.settings.progress_reward * np.concatenate(dprog)).astype(np.float32)
-        if lane is not None:
-            rewards = rewards + lane
         if flow is not None:
             rewards = rewards + np.concatenate(flow)
-        if hold is not None:
-            rewards = rewards + np.concatenate(hold)
-        if near is not None:
-            rewards = rewards + np.concatenate(near)
         self.a_prev[:] = a_delta
         self._stack[:, 1:] = self._stack[:, :-1]
         self._stack[:, 0] = obs
@@ -317,11 +211,8 @@ class FastVecEnv(VecEnv):
                     self._stack[sl][idx] = w.agent_obs()[idx][:, None]  # a new episode: no history
             obs = self._stacked()
             self.a_prev[dones] = 0.0
-            if self.hold_heading is not None:
-                self.hold_heading.reset(dones)
             if self.curriculum is not None:
                 self.curriculum.update()
-        self._update_held()
         return obs, rewards, dones, infos
 
     def close(self) -> None:
