@@ -286,26 +286,26 @@ def ablation_markdown() -> str:
 
 
 def flags_markdown() -> str:
-    """The flags of ``racecav train racing|overtake|dagger``, from TrainConfig and EnvConfig."""
-    from racecav.common.config import TRAIN_PRESETS, EnvConfig, TrainConfig
-    from racecav.training.flags import DAGGER_FLAGS, ENV_FLAGS, TRAIN_FLAGS
+    """The flags of ``racecav train racing|overtake|dagger``, from TrainConfig and EnvConfig, with
+    their defaults as ``racecav train overtake --help`` prints them."""
+    from racecav.common.config import EnvConfig, TrainConfig
+    from racecav.training.flags import DAGGER_FLAGS, ENV_FLAGS, TRAIN_FLAGS, stage_defaults
 
-    fast = TRAIN_PRESETS["fast"]
+    paper, fast = stage_defaults("overtake", "paper"), stage_defaults("overtake", "fast")
 
-    def row(model, name, flag, preset):
-        f = model.model_fields[name]
-        default = f.default if f.default != {} else "{}"
-        doc = " ".join((f.description or "").split()).replace("|", "\\|")
-        return f"| `{flag}` | {default} | {'' if preset is None else preset} | {doc} |"
+    def row(model, name, flag, key):
+        doc = " ".join((model.model_fields[name].description or "").split()).replace("|", "\\|")
+        shown = lambda v: "{}" if v == {} else v  # noqa: E731
+        return f"| `{flag}` | {shown(paper[key])} | {shown(fast[key]) if fast[key] != paper[key] else ''} | {doc} |"
 
     L = ["", "## Flags of `racecav train racing|overtake|dagger`", "",
          "Generated from TrainConfig and EnvConfig (common/config.py); `racecav train STAGE --help` prints the "
-         "same. A run records them all in its config.json. The ablation's other settings are gone from "
-         f"training/ (an old config.json that turns one on is refused, naming commit {EXPERIMENTS_COMMIT}, where "
-         "their code is).", "",
-         "| flag | default | --preset fast | what it sets |", "|---|---|---|---|"]
-    L += [row(TrainConfig, n, "--" + n.replace("_", "-"), fast.get(n)) for n in TRAIN_FLAGS]
-    L += [row(EnvConfig, n, flag, fast["env"].get(n)) for n, flag in ENV_FLAGS.items()]
+         "same, with each stage's defaults (the racing stage: no obstacle cars, centerline traffic). A run records "
+         "them all in its config.json. The ablation's other settings are gone from training/ (an old "
+         f"config.json that turns one on is refused, naming commit {EXPERIMENTS_COMMIT}, where their code is).", "",
+         "| flag | default (overtake) | --preset fast | what it sets |", "|---|---|---|---|"]
+    L += [row(TrainConfig, n, "--" + n.replace("_", "-"), n) for n in TRAIN_FLAGS]
+    L += [row(EnvConfig, n, flag, f"env.{n}") for n, flag in ENV_FLAGS.items()]
     L += ["", "`racecav train dagger` only:", "", "| flag | default | --preset fast | what it sets |", "|---|---|---|---|"]
-    L += [row(TrainConfig, n, "--" + n.replace("_", "-"), None) for n in DAGGER_FLAGS]
+    L += [row(TrainConfig, n, "--" + n.replace("_", "-"), n) for n in DAGGER_FLAGS]
     return "\n".join(L) + "\n"

@@ -36,7 +36,7 @@ from pathlib import Path
 
 from racecav.common.bench import git_commit
 from racecav.common.lidar import VIEWS
-from racecav.training.flags import DAGGER_FLAGS, ENV_FLAGS, TRAIN_FLAGS
+from racecav.training.flags import DAGGER_FLAGS, ENV_FLAGS, TRAIN_FLAGS, config_from_args, stage_defaults
 from racecav.training.runs import load_run_config, save_checkpoint, source_env, truncate_csv
 
 log = logging.getLogger("racecav.train")
@@ -56,40 +56,36 @@ def _flag_type(annotation):
     return t if t in (float, str) else str
 
 
-def field_help(model, name: str) -> str:
-    """A config field's flag help: its docstring and its default (a preset may change it)."""
-    f = model.model_fields[name]
-    default = f.default if not isinstance(f.default, dict) else (f.default or "{}")
-    if name in TRAIN_PRESETS_KEYS:
-        return f"{f.description} (default {default}; --preset fast: {TRAIN_PRESETS_KEYS[name]})"
-    return f"{f.description} (default {default})"
+def field_help(model, name: str, key: str, defaults: dict, fast: dict) -> str:
+    """A config field's flag help: its docstring and its default for the stage (and under
+    ``--preset fast`` where that differs)."""
+    value = defaults[key]
+    text = f"{model.model_fields[name].description} (default {value if value != {} else '{}'}"
+    return text + (f"; --preset fast: {fast[key]})" if fast[key] != value else ")")
 
 
-TRAIN_PRESETS_KEYS: dict = {}
-"""TrainConfig field -> its value under ``--preset fast`` (filled on first use)."""
-
-
-def add_config_flags(p, model, names, dest=lambda n: n, flags=None) -> None:
+def add_config_flags(p, model, names, defaults: dict, fast: dict, dest=lambda n: n, flags=None,
+                     prefix: str = "") -> None:
     """One flag per config field: type, help and default from common/config.py."""
     for name in names:
         f = model.model_fields[name]
         flag = (flags or {}).get(name, "--" + name.replace("_", "-"))
         alias = ("--lr",) if name == "learning_rate" else ()
+        help_ = field_help(model, name, prefix + name, defaults, fast)
         if f.annotation is bool:
             p.add_argument(flag, *alias, dest=dest(name), action=argparse.BooleanOptionalAction, default=None,
-                           help=field_help(model, name))
+                           help=help_)
         else:
-            p.add_argument(flag, *alias, dest=dest(name), type=_flag_type(f.annotation), help=field_help(model, name))
+            p.add_argument(flag, *alias, dest=dest(name), type=_flag_type(f.annotation), help=help_)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from racecav.common.config import TRAIN_PRESETS, EnvConfig, TrainConfig
 
-    fast = TRAIN_PRESETS["fast"]
-    TRAIN_PRESETS_KEYS.update({k: v for k, v in fast.items() if k != "env"})
     sub = parser.add_subparsers(dest="train_cmd", required=True, metavar="STAGE")
 
-    def add_flags(p) -> None:
+    def add_flags(p, stage: str) -> None:
+        defaults, fast = stage_defaults(stage, "paper"), stage_defaults(stage, "fast")
         p.add_argument("--steps", type=float, default=1e6, help="total samples of the run (default 1e6)")
         p.add_argument("--run-dir", type=Path, help="run folder (default runs/<stage>[-<heading>])")
         p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from latest")
@@ -99,18 +95,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
         # every setting is a field of TrainConfig / EnvConfig (common/config.py): flags, help,
         # defaults and the run record come from there
-        add_config_flags(p, TrainConfig, TRAIN_FLAGS)
-        add_config_flags(p, EnvConfig, ENV_FLAGS, dest=lambda n: f"env_{n}", flags=ENV_FLAGS)
+        add_config_flags(p, TrainConfig, TRAIN_FLAGS, defaults, fast)
+        add_config_flags(p, EnvConfig, ENV_FLAGS, defaults, fast, dest=lambda n: f"env_{n}", flags=ENV_FLAGS,
+                         prefix="env.")
+        return defaults, fast
 
     for stage, help_ in (("racing", "stage 1: the racing policy on the empty track (0 obstacles)"),
                          ("overtake", "stage 2: overtaking among obstacle cars (and scenario episodes)")):
         p = sub.add_parser(stage, help=help_, description=help_)
-        add_flags(p)
+        add_flags(p, stage)
         p.set_defaults(stage=stage)
     help_ = "the yield teacher fitted by DAgger on the overtake env (training/dagger.py): the shipped avoid's recipe"
     p = sub.add_parser("dagger", help=help_, description=help_)
-    add_flags(p)
-    add_config_flags(p, TrainConfig, DAGGER_FLAGS)
+    defaults, fast = add_flags(p, "dagger")
+    add_config_flags(p, TrainConfig, DAGGER_FLAGS, defaults, fast)
     p.set_defaults(stage="dagger")
     from racecav.training import select  # cheap: argument definitions only
 
@@ -156,38 +154,6 @@ def export_onnx(args) -> int:
 
 
 # ----------------------------------------------------------------------------------- settings
-def config_from_args(args, env_base=None):
-    """The run's TrainConfig: defaults, the preset, the stage's env defaults, explicit flags.
-
-    :param env_base: the EnvConfig of the configuration file (``--config``) to start from.
-    :raises ValueError: naming the invalid setting.
-    """
-    from pydantic import ValidationError
-
-    from racecav.common.config import TRAIN_PRESETS, TrainConfig
-    from racecav.common.vehicle import format_errors
-
-    overtake = args.stage != "racing"  # overtake, dagger: the overtaking env
-    preset = TRAIN_PRESETS[args.preset]
-    env = {**(env_base.model_dump() if env_base is not None else {}), **preset.get("env", {}),
-           "heading": "default", "n_obstacles": 15 if overtake else 0,
-           "driver": "policy:racing" if overtake else "centerline"}
-    flags = {k: getattr(args, f"env_{k}", None) for k in ENV_FLAGS}
-    env.update({k: v for k, v in flags.items() if v is not None})
-    if not overtake and flags.get("heading") not in (None, "default"):
-        raise ValueError("heading: the racing stage drives with no traffic (default heading only)")
-    if env.get("scenarios") and flags.get("scenario_share") is None:
-        env["scenario_share"] = 0.5
-    data = {**{k: v for k, v in preset.items() if k != "env"}, "stage": args.stage, "preset": args.preset,
-            **{k: getattr(args, k) for k in TRAIN_FLAGS + DAGGER_FLAGS if getattr(args, k, None) is not None}, "env": env}
-    if data.get("init_from") is not None:
-        data["init_from"] = str(data["init_from"])
-    try:
-        return TrainConfig.model_validate(data)
-    except ValidationError as e:
-        raise ValueError(format_errors(e)) from None
-
-
 def make_venv(tc, seed: int):
     """The (VecMonitor-wrapped) FastVecEnv of a run's TrainConfig."""
     from stable_baselines3.common.vec_env import VecMonitor
