@@ -1,7 +1,8 @@
 """The in-process outcomes of the shipped policies and the two references, as JSON: a check that a
 refactoring of the trial loops left behaviour unchanged (not a pytest test: it takes minutes).
 
-    python tests/inprocess_identity.py OUT.json [--suite conflicts] [--seeds 40] [--api MODULE]
+    python tests/inprocess_identity.py OUT.json [--suite conflicts] [--seeds 40] [--api MODULE] [--drivers A,B]
+    python tests/inprocess_identity.py OUT.json --merge PART1.json PART2.json   (drivers run apart)
     cmp OUT.json tests/data/inprocess_outcomes_3a95a65.json
 
 For each driver: the paper-timed and conflict-timed scenarios in PyBullet, seeds 0..N-1 (each
@@ -37,7 +38,15 @@ def main(argv=None) -> int:
     ap.add_argument("--suite", default="conflicts", help="suite NAME or folder (racecav suite generate --name conflicts)")
     ap.add_argument("--seeds", type=int, default=40)
     ap.add_argument("--api", default="racecav.evaluation.inprocess", help="the module holding the trial loops")
+    ap.add_argument("--drivers", help="comma-separated policy names and/or 'references' (default: the five policies and the references)")
+    ap.add_argument("--merge", nargs="+", type=Path, help="write OUT.json as the union of these partial outputs")
     args = ap.parse_args(argv)
+    if args.merge:
+        out = {}
+        for part in args.merge:
+            out.update(json.loads(part.read_text()))
+        args.out.write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
+        return 0
 
     import torch
 
@@ -48,6 +57,9 @@ def main(argv=None) -> int:
     m = _api(args.api)
     drivers = {name: load_policy(name) for name in POLICIES}
     drivers.update(m.reference_drivers())
+    if args.drivers:  # "references": both non-evading references
+        names = [n for k in args.drivers.split(",") for n in (m.reference_drivers() if k == "references" else [k])]
+        drivers = {k: drivers[k] for k in names}
     out = {}
     for name, drv in drivers.items():
         cells = {}
@@ -61,7 +73,7 @@ def main(argv=None) -> int:
         out[name] = cells
         print(name, {k: sum(v["success"]) for k, v in cells.items() if k != "fast"}, cells["fast"]["suite_success"],
               file=sys.stderr, flush=True)
-    args.out.write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
+        args.out.write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")  # after each driver: a partial file
     return 0
 
 
