@@ -16,6 +16,7 @@ invalid fields are errors naming the field.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from racecav.common.vehicle import load_toml
+from racecav.common.world import World, WorldFile, build_world, load_world
 
 SCENARIOS_DIR = Path(__file__).parent / "data" / "scenarios"
 SUITES_RUNS_DIR = Path("runs/suites")
@@ -75,6 +77,10 @@ class Sync(_Strict):
     speed_max: float = Field(2.0, gt=0)
     release_distance_m: float = Field(1.0, ge=0)
     release_time_s: float = Field(0.8, ge=0)
+    release_stopped_s: float | None = Field(None, ge=0)
+    """Also released, to its nominal ``speed``, once the ego has stood still (< 0.05 m/s) this
+    long: an ego that yields is not kept waiting by an actor crawling at ``speed_min``
+    (default: never)."""
 
     @model_validator(mode="after")
     def _range(self) -> "Sync":
@@ -157,8 +163,11 @@ class Scenario(_Strict):
 
     name: str
     description: str = ""
-    world: str
-    """World name (common/data/worlds) or path."""
+    world: str | None = None
+    """World name (common/data/worlds) or path; or, instead, the world inline in ``[map]``."""
+    map: WorldFile | None = None
+    """The world itself (a world file's fields): a generated file carries its road, so the
+    file's digest covers it."""
     duration_s: float = Field(gt=0)
     ego: EgoStart | None = None
     """Required unless the world is a loop with [traffic] (then placed on the centerline)."""
@@ -175,7 +184,37 @@ class Scenario(_Strict):
             raise ValueError("ego: required when there is no [traffic] section")
         if self.traffic is not None and self.obstacles:
             raise ValueError("obstacles: not allowed together with [traffic]")
+        if (self.world is None) == (self.map is None):
+            raise ValueError("world: give either world (a name or path) or [map], not both or neither")
         return self
+
+    @property
+    def world_key(self) -> str:
+        """What identifies its geometry: the world's name, or ``map:`` and a digest of [map]
+        (scenarios with one key share one world)."""
+        if self.map is None:
+            return self.world
+        return "map:" + hashlib.sha1(self.map.model_dump_json().encode()).hexdigest()[:16]
+
+    def build_world(self) -> World:
+        """Its world, for either backend (built once per key and process)."""
+        key = self.world_key
+        if key not in _WORLDS:
+            if len(_WORLDS) > 256:
+                _WORLDS.clear()
+            try:
+                _WORLDS[key] = load_world(self.world) if self.map is None else build_world(self.map)
+            except ValueError as e:
+                raise ValueError(f"scenario {self.name}: map: {e}" if self.map is not None else str(e)) from None
+        return _WORLDS[key]
+
+    def ego_shifted(self, dy: float) -> "Scenario":
+        """The scenario with its ego starting ``dy`` metres to its left."""
+        if not dy:
+            return self
+        e = self.ego
+        return self.model_copy(update={"ego": e.model_copy(update={
+            "x": e.x - dy * math.sin(math.radians(e.yaw_deg)), "y": e.y + dy * math.cos(math.radians(e.yaw_deg))})})
 
     def sample(self, rng: np.random.Generator) -> "Trial":
         """Draw one concrete trial (randomisation applied) for an intersection-type scenario."""
@@ -203,6 +242,9 @@ class Scenario(_Strict):
     def conflict_timed(self) -> bool:
         """Some obstacle is timed by the ego (trigger or synchronised arrival)."""
         return any(o.conflict_timed for o in self.obstacles)
+
+
+_WORLDS: dict[str, World] = {}
 
 
 @dataclass(frozen=True)

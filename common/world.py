@@ -10,8 +10,10 @@ per segment, the fast backend casts rays at them.
   at ``arc_max_step_deg``). The centerline direction is the traffic direction. A loop may cross
   itself (figure eight): the walls inside the other part of the lane are cut, the crossing is
   open.
-- ``kind = "roads"``: straight ``[[roads]]`` (centre, yaw, length, width); walls are the road
-  edges minus the parts inside another road (curbs of a crossing). No centerline.
+- ``kind = "roads"``: straight ``[[roads]]`` (centre, yaw, length, width) and open ``[[ways]]``
+  (a start pose, a width and straight / arc ``pieces`` as a loop's: roads of any shape, open at
+  both ends); walls are the edges of every road and way minus the parts inside another road or
+  way (the curbs of a crossing or a junction). No centerline.
 Both accept extra ``[[walls]]`` segments (x0, y0, x1, y1). Units m, angles in files in degrees
 (``*_deg``), everywhere in code in radians.
 """
@@ -62,6 +64,17 @@ class Road(_Strict):
     width: float = Field(gt=0)
 
 
+class Way(_Strict):
+    """An open road of any shape: from a start pose (its centre line's first point and
+    heading), ``pieces`` of straights and arcs as a loop's, ``width`` curb to curb."""
+
+    x: float
+    y: float
+    yaw_deg: float
+    width: float = Field(gt=0)
+    pieces: list[Piece] = Field(min_length=1)
+
+
 class Pose2(_Strict):
     x: float = 0.0
     y: float = 0.0
@@ -82,6 +95,7 @@ class WorldFile(_Strict):
     start: Pose2 = Pose2()
     pieces: list[Piece] = []
     roads: list[Road] = []
+    ways: list[Way] = []
     walls: list[tuple[float, float, float, float]] = []
     closure_tolerance: float = Field(0.01, gt=0)
 
@@ -89,11 +103,17 @@ class WorldFile(_Strict):
     def _check(self) -> "WorldFile":
         if self.kind == "loop" and not self.pieces:
             raise ValueError("pieces: a loop needs at least one piece")
-        if self.kind == "roads" and not self.roads:
-            raise ValueError("roads: a roads world needs at least one road")
+        if self.kind == "roads" and not (self.roads or self.ways):
+            raise ValueError("roads: a roads world needs at least one road or way")
+        if self.kind == "loop" and self.ways:
+            raise ValueError("ways: only in a roads world")
         for i, p in enumerate(self.pieces):
             if p.arc_radius is not None and p.arc_radius <= self.lane_width / 2:
                 raise ValueError(f"pieces.{i}.arc_radius: must exceed lane_width / 2")
+        for i, w in enumerate(self.ways):
+            for j, p in enumerate(w.pieces):
+                if p.arc_radius is not None and p.arc_radius <= w.width / 2:
+                    raise ValueError(f"ways.{i}.pieces.{j}.arc_radius: must exceed the way's width / 2")
         return self
 
 
@@ -311,42 +331,122 @@ def _cut_crossings(segs: np.ndarray, seg_s: np.ndarray, cl: np.ndarray, half: fl
     return np.asarray(out, dtype=np.float64).reshape(-1, 4)
 
 
+def way_edges(w: Way, step_deg: float) -> tuple[list, list]:
+    """Left and right edge polylines of an open way (arcs subdivided at ``step_deg``)."""
+    x, y, h = w.x, w.y, math.radians(w.yaw_deg)
+    half = w.width / 2
+    left: list[tuple[float, float]] = []
+    right: list[tuple[float, float]] = []
+
+    def edge(px: float, py: float, hh: float) -> None:
+        left.append((px - half * math.sin(hh), py + half * math.cos(hh)))
+        right.append((px + half * math.sin(hh), py - half * math.cos(hh)))
+
+    edge(x, y, h)
+    for p in w.pieces:
+        if p.straight is not None:
+            x, y = x + p.straight * math.cos(h), y + p.straight * math.sin(h)
+            edge(x, y, h)
+            continue
+        r, turn = p.arc_radius, math.radians(p.arc_deg)
+        sgn = 1.0 if turn > 0 else -1.0
+        cx, cy = x - sgn * r * math.sin(h), y + sgn * r * math.cos(h)
+        n_w = max(1, math.ceil(abs(p.arc_deg) / step_deg))
+        for k in range(1, n_w + 1):
+            hh = h + turn * k / n_w
+            edge(cx + sgn * r * math.sin(hh), cy - sgn * r * math.cos(hh), hh)
+        h = h + turn
+        x, y = cx + sgn * r * math.sin(h), cy - sgn * r * math.cos(h)
+    return left, right
+
+
+def way_centerline(w: Way, step: float = CENTERLINE_STEP) -> np.ndarray:
+    """(K, 2) points of a way's centre line, from its start, about ``step`` apart."""
+    x, y, h = w.x, w.y, math.radians(w.yaw_deg)
+    pts = [(x, y)]
+    for p in w.pieces:
+        if p.straight is not None:
+            n = max(1, math.ceil(p.straight / step))
+            pts += [(x + p.straight * k / n * math.cos(h), y + p.straight * k / n * math.sin(h)) for k in range(1, n + 1)]
+            x, y = pts[-1]
+            continue
+        r, turn = p.arc_radius, math.radians(p.arc_deg)
+        sgn = 1.0 if turn > 0 else -1.0
+        cx, cy = x - sgn * r * math.sin(h), y + sgn * r * math.cos(h)
+        n = max(1, math.ceil(r * abs(turn) / step))
+        pts += [(cx + sgn * r * math.sin(h + turn * k / n), cy - sgn * r * math.cos(h + turn * k / n)) for k in range(1, n + 1)]
+        h += turn
+        x, y = pts[-1]
+    return np.asarray(pts, dtype=np.float64)
+
+
+def _road_quad(r: Road) -> np.ndarray:
+    c, s = math.cos(math.radians(r.yaw_deg)), math.sin(math.radians(r.yaw_deg))
+    u, v = np.array([c, s]) * r.length / 2, np.array([-s, c]) * r.width / 2
+    ctr = np.array([r.cx, r.cy])
+    return np.array([ctr - u - v, ctr + u - v, ctr + u + v, ctr - u + v])
+
+
 def _road_walls(f: WorldFile) -> np.ndarray:
-    """Road edges minus the parts inside another road (the curbs of a crossing)."""
-    segs = []
-    for i, r in enumerate(f.roads):
+    """Road and way edges minus the parts inside another road or way (the curbs of a crossing or
+    a junction). A way's area is the union of the quadrilaterals between consecutive vertices of
+    its two edges (its arcs as the chords its curbs are)."""
+    # each road or way: its curb segments and the convex areas (quads) that cut the others' curbs
+    items: list[tuple[list, list[np.ndarray]]] = []
+    for r in f.roads:
         c, s = math.cos(math.radians(r.yaw_deg)), math.sin(math.radians(r.yaw_deg))
+        curbs = []
         for side in (-1, 1):
             ox, oy = r.cx - side * r.width / 2 * s, r.cy + side * r.width / 2 * c
-            a = np.array([ox - r.length / 2 * c, oy - r.length / 2 * s])
-            d = np.array([r.length * c, r.length * s])
+            curbs.append((np.array([ox - r.length / 2 * c, oy - r.length / 2 * s]),
+                          np.array([r.length * c, r.length * s])))
+        items.append((curbs, [_road_quad(r)]))
+    for w in f.ways:
+        left, right = way_edges(w, f.arc_max_step_deg)
+        curbs = [(np.array(a), np.array(b) - np.array(a)) for side in (left, right)
+                 for a, b in zip(side[:-1], side[1:])]
+        quads = [np.array([right[k], right[k + 1], left[k + 1], left[k]]) for k in range(len(left) - 1)]
+        items.append((curbs, quads))
+    segs = []
+    for i, (curbs, _) in enumerate(items):
+        for a, d in curbs:
             cuts = [(0.0, 1.0)]
-            for j, o in enumerate(f.roads):
+            for j, (_, quads) in enumerate(items):
                 if j == i:
                     continue
-                lo, hi = _clip_to_rect(a, d, o)
-                if lo < hi:
-                    cuts = [piece for (u, v) in cuts for piece in ((u, min(v, lo)), (max(u, hi), v)) if piece[1] - piece[0] > 1e-9]
+                for q in quads:
+                    lo, hi = _clip_to_quad(a, d, q)
+                    if lo < hi:
+                        cuts = [piece for (u, v) in cuts for piece in ((u, min(v, lo)), (max(u, hi), v))
+                                if piece[1] - piece[0] > 1e-9]
             for u, v in cuts:
                 p0, p1 = a + d * u, a + d * v
                 segs.append((p0[0], p0[1], p1[0], p1[1]))
     return np.asarray(segs, dtype=np.float64).reshape(-1, 4)
 
 
-def _clip_to_rect(a: np.ndarray, d: np.ndarray, r: Road) -> tuple[float, float]:
-    """Parameter interval [lo, hi] of a + t d (t in [0, 1]) inside road rectangle r (slab test)."""
-    c, s = math.cos(math.radians(r.yaw_deg)), math.sin(math.radians(r.yaw_deg))
+def _clip_to_quad(a: np.ndarray, d: np.ndarray, quad: np.ndarray) -> tuple[float, float]:
+    """Parameter interval [lo, hi] of a + t d (t in [0, 1]) inside a convex quadrilateral
+    (Cyrus-Beck; either vertex order)."""
+    area = sum(quad[k, 0] * quad[(k + 1) % 4, 1] - quad[(k + 1) % 4, 0] * quad[k, 1] for k in range(4))
+    if abs(area) < 1e-12:
+        return 1.0, 0.0
+    orient = 1.0 if area > 0 else -1.0
     lo, hi = 0.0, 1.0
-    rel = a - np.array([r.cx, r.cy])
-    for axis, half in (((c, s), r.length / 2), ((-s, c), r.width / 2)):
-        p = rel[0] * axis[0] + rel[1] * axis[1]
-        q = d[0] * axis[0] + d[1] * axis[1]
-        if abs(q) < 1e-12:
-            if abs(p) > half:
+    for k in range(4):
+        p, e = quad[k], quad[(k + 1) % 4] - quad[k]
+        n = orient * np.array([e[1], -e[0]])  # outward normal
+        num = float(n @ (a - p))
+        den = float(n @ d)
+        if abs(den) < 1e-12:
+            if num > 0:
                 return 1.0, 0.0
             continue
-        t0, t1 = sorted(((-half - p) / q, (half - p) / q))
-        lo, hi = max(lo, t0), min(hi, t1)
+        t = -num / den
+        if den > 0:
+            hi = min(hi, t)
+        else:
+            lo = max(lo, t)
     return lo, hi
 
 

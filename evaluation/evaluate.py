@@ -41,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--suite", help="a conflict suite (NAME under runs/suites or DIR with suite.json, from "
                    "`racecav suite generate`): every file of --split, per-family success (with --table: the "
                    "suite section's suite, default conflicts)")
-    p.add_argument("--split", default="test", choices=["test", "train"], help="--suite: which split (default test)")
+    p.add_argument("--split", default="test", choices=["test", "train", "ood", "controls"],
+                   help="--suite: which split (default test; ood and controls: a roads suite)")
     p.add_argument("--trials-per-scenario", type=int, default=5,
                    help="--suite: trials per scenario file (default 5: 100 per family of 20 files)")
     p.add_argument("--table", action="store_true",

@@ -370,7 +370,6 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     from racecav.common.bench import machine
     from racecav.common.scenario import load_scenario
     from racecav.common.vehicle import load_car
-    from racecav.common.world import load_world
     from racecav.common.bench import git_commit
     from racecav.evaluation.plots import plot_success_bars, plot_trajectories
 
@@ -476,7 +475,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
     if fig_ctrl:
         car = load_car()
         panels = [(results[(fig_ctrl, s)].trials[0], f"({'abc'[k]}) {SHORT[s]}") for k, s in enumerate(SCENARIOS)]
-        walls = [load_world(load_scenario(s).world).walls for s in SCENARIOS]
+        walls = [load_scenario(s).build_world().walls for s in SCENARIOS]
         fig = plot_trajectories(panels, walls, img / "results-fig4.png", car_size=(car.length, car.width),
                                 title=f"{_label(fig_ctrl)}: trial 0 of each scenario (ego green, obstacle red, "
                                 "darker = later; dotted = start, solid = end)")

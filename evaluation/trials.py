@@ -146,13 +146,12 @@ def write_json(res, path: Path) -> Path:
 def plot_run(res, path: Path, n: int = 3) -> Path | None:
     from racecav.common.scenario import load_scenario
     from racecav.common.vehicle import load_car
-    from racecav.common.world import load_world
     from racecav.evaluation.plots import plot_trajectories
 
     shown = [t for t in res.trials if t.trajectory is not None][:n]
     if not shown:
         return None
-    walls = load_world(load_scenario(res.scenario.ref).world).walls
+    walls = load_scenario(res.scenario.ref).build_world().walls
     car = load_car()
     return plot_trajectories([(t, f"trial {t.index}") for t in shown], [walls] * len(shown), path,
                              title=f"{res.controller.name} on {res.scenario.name} ({res.mode})",

@@ -67,6 +67,8 @@ class ActorBatch:
         self.sync_s = f((N, A))                    # arc length of the actor's conflict point
         self.sync_vmin, self.sync_vmax = f((N, A)), f((N, A))
         self.release_m, self.release_s = f((N, A)), f((N, A))
+        self.release_still = np.full((N, A), np.inf)  # s the ego must stand still to release
+        self.still_since = np.full(N, np.nan)       # time the ego stopped (nan: moving)
         self.chg_at = np.full((N, A, S), np.inf)
         self.chg_v, self.chg_acc = f((N, A, S)), f((N, A, S))
         self.v_target = np.full((N, A), np.nan)    # active speed change target (nan: none)
@@ -83,6 +85,7 @@ class ActorBatch:
         n = env
         self.used[n] = False
         self.t[n] = 0.0
+        self.still_since[n] = np.nan
         for a, o in enumerate(obstacles):
             path = np.asarray(o.path, np.float64).reshape(-1, 2)
             pts = np.vstack([[o.x, o.y], path])
@@ -115,6 +118,7 @@ class ActorBatch:
                 self.sync_s[n, a] = project_on_path(pts, self.cum[n, a, :k], np.asarray(sy.actor_point, float))
                 self.sync_vmin[n, a], self.sync_vmax[n, a] = sy.speed_min, sy.speed_max
                 self.release_m[n, a], self.release_s[n, a] = sy.release_distance_m, sy.release_time_s
+                self.release_still[n, a] = np.inf if sy.release_stopped_s is None else sy.release_stopped_s
             self.chg_at[n, a] = np.inf
             for j, c in enumerate(sorted(o.speed_changes, key=lambda c: c.at_m)):
                 if j >= self.max_changes:
@@ -138,9 +142,16 @@ class ActorBatch:
         fire = self.used & ~self.started & (self.start_kind != START_TIME) & (cond <= self.start_value)
         self.started |= fire
         self.v = np.where(fire, self.v0, self.v)
+        # the ego standing still: since when (a yielding ego releases actors that set release_stopped_s)
+        still = ego[:, 3] < V_EGO_FLOOR
+        self.still_since = np.where(still, np.where(np.isnan(self.still_since), self.t, self.still_since), np.nan)
         # synchronised arrival: re-solve, or release
         live = self.used & self.started & self.sync & ~self.released
         if live.any():
+            waited = live & ((self.t - self.still_since)[:, None] >= self.release_still)  # nan: False
+            self.released |= waited
+            self.v = np.where(waited, self.v0, self.v)
+            live &= ~waited
             d_e = np.hypot(self.sync_ego_point[..., 0] - ex, self.sync_ego_point[..., 1] - ey)
             tta = d_e / ev
             d_a = self.sync_s - self.s

@@ -30,7 +30,7 @@ from racecav.sim.actors import ActorBatch
 from racecav.common.scenario import Scenario, Trial, load_scenario
 from racecav.common.vehicle import (CarParams, load_car, steer_from_action, steer_rate_limit,
                                     throttle_from_action, wheel_speed_step)
-from racecav.common.world import World, load_world
+from racecav.common.world import World
 from racecav.sim.traffic import TrafficDriver, TrafficObs, make_driver
 
 GRAVITY = 9.81
@@ -141,7 +141,7 @@ class BulletWorld:
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
         self.car = car or load_car()
         self.spec = lidar or self.car.lidar
-        self.world: World = load_world(self.scenario.world)
+        self.world: World = self.scenario.build_world()
         self.lidar_all = lidar_all
         tr = self.scenario.traffic
         self.heading = heading or (tr.heading if tr else "default")

@@ -88,12 +88,12 @@ class FastWorld:
         self.scenarios = list(scenarios or [])
         if self.scenarios:
             # scenario episodes: the ego and the scenario's kinematic actors (sim/actors.py)
-            worlds = {sc.world for sc in self.scenarios}
+            worlds = {sc.world_key for sc in self.scenarios}
             if len(worlds) != 1:
                 raise ValueError(f"scenarios: one world per FastWorld, got {sorted(worlds)}")
             if any(sc.traffic is not None or sc.ego is None for sc in self.scenarios):
                 raise ValueError("scenarios: only scenarios with an [ego] and [[obstacles]] (no [traffic])")
-            world = worlds.pop()
+            world = self.scenarios[0].build_world()
             n_obstacles = max(1, max(len(sc.obstacles) for sc in self.scenarios))
             driver = None
         if isinstance(world, str):

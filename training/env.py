@@ -80,8 +80,8 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
         families: dict[str, list[str]] = {}
         for f, family in scenario_sources(settings.scenarios, "train"):
             sc = load_scenario(f)
-            groups.setdefault(sc.world, []).append(sc)
-            families.setdefault(sc.world, []).append(family)
+            groups.setdefault(sc.world_key, []).append(sc)
+            families.setdefault(sc.world_key, []).append(family)
         total = sum(len(g) for g in groups.values())
         sizes = {k: max(1, int(round(n_scen * len(g) / total))) for k, g in groups.items()}
         last = list(sizes)[-1]
