@@ -35,10 +35,11 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from racecav.common.scenario import Scenario
-from racecav.common.vehicle import load_toml
+from racecav.common.vehicle import load_car, load_toml
+from racecav.evaluation.suite import Range, _check_ranges, _pt, _r, _Strict
 
 SUITES_DIR = Path(__file__).resolve().parent.parent / "common" / "data" / "suites"
 SPLITS = ("train", "test", "ood", "controls")
@@ -53,20 +54,8 @@ PASSED_M = 0.5
 MAX_ATTEMPTS = 400
 ROAD_LENGTH = 30.0
 SIDE_LENGTH = 9.0
-CAR_L, CAR_W = 0.55, 0.30
-
-Range = tuple[float, float]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-def _ranges(model: BaseModel) -> None:
-    for name, val in model:
-        if isinstance(val, tuple) and len(val) == 2 and all(isinstance(v, (int, float)) for v in val):
-            if val[0] > val[1]:
-                raise ValueError(f"{name}: low {val[0]} > high {val[1]}")
+_CAR = load_car()
+CAR_L, CAR_W = _CAR.length, _CAR.width
 
 
 class Common(_Strict):
@@ -99,7 +88,7 @@ class Common(_Strict):
 
     @model_validator(mode="after")
     def _check(self) -> "Common":
-        _ranges(self)
+        _check_ranges(self)
         if self.width_m[0] < 1.2:
             raise ValueError("width_m: at least 1.2 m (two lanes of a car)")
         if not 0 < self.angle_deg[0] <= self.angle_deg[1] < 180:
@@ -190,14 +179,6 @@ def load_benchmark(name_or_path: str | Path) -> BenchmarkFile:
 
 
 # --------------------------------------------------------------------------------- drawing helpers
-def _r(v: float) -> float:
-    return round(float(v), 4)
-
-
-def _pt(p) -> list[float]:
-    return [_r(p[0]), _r(p[1])]
-
-
 def _dir(a: float) -> np.ndarray:
     return np.array([math.cos(a), math.sin(a)])
 
