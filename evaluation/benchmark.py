@@ -805,3 +805,68 @@ def generate(bf: BenchmarkFile, out: Path, seed: int = 0, splits=SPLITS, progres
         manifest["splits"][s] = sorted(manifest["splits"][s], key=lambda e: e["file"])
     man_path.write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest
+
+
+# --------------------------------------------------------------------------------- figure
+def plot_families(bf: BenchmarkFile, path: Path, seed: int = 0) -> Path:
+    """One validated draw of every family (the train bands): walls, the ego (green) and each
+    actor's start and path (red; parked cars black, x: synchronised conflict points)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from racecav.common.world import plot_world
+
+    cols = 6
+    rows = math.ceil(len(bf.families) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.3 * cols, 2.6 * rows))
+    for k, (ax, fam) in enumerate(zip(np.ravel(axes), bf.families)):
+        for attempt in range(MAX_ATTEMPTS):
+            ctx = Ctx(np.random.default_rng([seed, 9, k, attempt]), bf.common, bf.ood)
+            try:
+                d, m = draw(ctx, fam)
+            except _Redraw:
+                continue
+            if valid(d, m, fam, bf.common, seed):
+                break
+        sc = Scenario.model_validate(scenario_data(d, m, fam, bf.common, fam.name))
+        plot_world(sc.build_world(), ax, show_centerline=False)
+        e = sc.ego
+        ax.annotate("", xy=(e.x + 1.0, e.y), xytext=(e.x, e.y), arrowprops=dict(arrowstyle="->", color="g", lw=2))
+        for o in sc.obstacles:
+            pts = np.vstack([[o.x, o.y], np.asarray(o.path, float).reshape(-1, 2)])
+            if len(pts) == 1:
+                pts = np.vstack([pts, pts[0] + 3.0 * _dir(math.radians(o.yaw_deg))])
+            if o.speed > 0:
+                ax.plot(pts[:, 0], pts[:, 1], "r-", lw=0.8)
+            ax.plot(o.x, o.y, "s", color="r" if o.speed > 0 else "k", ms=4)
+            if o.sync is not None:
+                ax.plot(*o.sync.actor_point, "rx", ms=4)
+        ax.set_xlim(-7.5, 5.5)
+        ax.set_ylim(-4.5, 4.5)
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+        ax.set_title(f"{fam.name}{' (control)' if fam.control else ''}: {m.shape}", fontsize=9)
+    for ax in np.ravel(axes)[len(bf.families):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=70)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m racecav.evaluation.benchmark OUT.png [SUITE]``: the docs/world.md figure."""
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    if not args:
+        print("usage: python -m racecav.evaluation.benchmark OUT.png [SUITE]")
+        return 2
+    plot_families(load_benchmark(args[1] if len(args) > 1 else "roads"), Path(args[0]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
