@@ -27,6 +27,7 @@ from pybullet_utils.bullet_client import BulletClient
 
 from racecav.common.lidar import LidarSpec, ray_angles, sanitize, scan_ranges
 from racecav.sim.actors import ActorBatch
+from racecav.sim.progress import LoopProgress, dense_centerline
 from racecav.common.scenario import Scenario, Trial, load_scenario
 from racecav.common.vehicle import (CarParams, load_car, steer_from_action, steer_rate_limit,
                                     throttle_from_action, wheel_speed_step)
@@ -148,6 +149,8 @@ class BulletWorld:
         if self.heading not in ("default", "reversed"):
             raise ValueError(f"heading: must be default or reversed (got {self.heading!r})")
         self.n_traffic = (tr.cars if tr else 0) if n_obstacles is None else n_obstacles
+        self.track = LoopProgress(dense_centerline(self.world)) if self.world.centerline is not None else None
+        """The ego's centerline station on loop worlds (sim/progress.py), None elsewhere."""
         if tr is None and n_obstacles:
             raise ValueError("n_obstacles: only for scenarios with [traffic]")
         self.driver = (make_driver(traffic_driver if traffic_driver is not None else tr.driver, backend="bullet")
@@ -303,7 +306,8 @@ class BulletWorld:
         if v0 > 0:
             self._set_speed(0, v0)
         self.start_pose = self.car_state(0)[:3].copy()
-        self._last_s = self.world.progress(*self.start_pose[:2]) if self.world.centerline is not None else 0.0
+        if self.track is not None:
+            self.track.place(0, 0, *self.start_pose[:2])
         self._progress = 0.0
         return self._observe()[None, :]
 
@@ -572,19 +576,17 @@ class BulletWorld:
             for j in c.wheel_joints:
                 self.bc.resetJointState(c.body, j, 0.0, 0.0)
             self.w[i] = 0.0
-        if i == 0 and self.world.centerline is not None:
-            self._last_s = float(self.world.progress(x, y))
+        if i == 0 and self.track is not None:
+            self.track.place(0, 0, x, y)
         self._observe()
 
     def _update_progress(self) -> None:
-        """Accumulate centerline progress step by step (it keeps counting over many laps)."""
-        if self.world.centerline is None:
+        """Accumulate centerline progress step by step (it keeps counting over many laps), by the
+        local tracker the fast world uses (sim/progress.py)."""
+        if self.track is None:
             return
         x, y = self.car_state(0)[:2]
-        s = float(self.world.progress(x, y))
-        L = self.world.length
-        self._progress += (s - self._last_s + L / 2) % L - L / 2
-        self._last_s = s
+        self._progress += float(self.track.update(np.array([[x]]), np.array([[y]]))[0])
 
     def progress(self) -> np.ndarray:
         """(1,) ego progress (m): along the centerline in its driving direction, accumulated over

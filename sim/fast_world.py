@@ -26,9 +26,9 @@ import numpy as np
 from racecav.common import lidar as lidar_mod
 from racecav.common import vehicle as vehicle_mod
 from racecav.sim import fast_kernels as K
+from racecav.sim.progress import CENTERLINE_DS, LoopProgress, dense_centerline  # noqa: F401 (re-exported)
 from racecav.sim.traffic import make_driver
 
-CENTERLINE_DS = 0.05  # m, spacing of the dense centerline table used by resets and traffic
 RESPAWN_TRIES = 24
 RESPAWN_MIN_DIST = 2.5  # m from every other car when an obstacle car is respawned ...
 RESPAWN_MIN_DIST_AGENT = 6.0  # ... and from the agent (over 2 s at its top speed)
@@ -37,28 +37,6 @@ OBSTACLE_SPEED_FRACTION = (0.55, 1.0)  # each obstacle car's cruise speed / top 
 GRAVITY = 9.81
 WALLS_PER_CHUNK = 4
 V_KIN = 0.3  # m/s: below this speed the single-track model is kinematic (tyre model singular)
-
-
-def dense_centerline(world, ds: float = CENTERLINE_DS) -> np.ndarray:
-    """(K, 4) table x, y, yaw, curvature every ``ds`` metres along the world's closed centerline."""
-    pts = np.asarray(world.centerline, dtype=np.float64)
-    closed = np.vstack([pts, pts[:1]])
-    seg = np.hypot(*np.diff(closed, axis=0).T)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    n = max(int(s[-1] / ds), 8)
-    q = np.linspace(0.0, s[-1], n, endpoint=False)
-    x = np.interp(q, s, closed[:, 0])
-    y = np.interp(q, s, closed[:, 1])
-    dx = np.roll(x, -1) - np.roll(x, 1)
-    dy = np.roll(y, -1) - np.roll(y, 1)
-    yaw = np.arctan2(dy, dx)
-    dyaw = np.angle(np.exp(1j * (np.roll(yaw, -1) - yaw)))
-    step = s[-1] / n
-    kap = dyaw / step
-    win = max(int(0.3 / step), 1)  # smooth over ~0.6 m (the polyline's corners are kinks)
-    kernel = np.ones(2 * win + 1) / (2 * win + 1)
-    kap = np.convolve(np.concatenate([kap[-win:], kap, kap[:win]]), kernel, mode="valid")
-    return np.stack([x, y, yaw, kap], axis=1)
 
 
 class FastWorld:
@@ -152,7 +130,8 @@ class FastWorld:
         self.skid = np.zeros((N, C), bool)  # braking agents (their wheels slide)
         self.beta, self.r = f((N, C)), f((N, C))  # slip angle and yaw rate of the single-track model
         self.active = np.ones((N, C), dtype=bool)
-        self.cl_idx = np.zeros((N, C), dtype=np.int64)
+        self.track = LoopProgress(self.cl, (N, C))  # every car's centerline station (traffic, progress)
+        self.cl_idx = self.track.idx
         self.lane_offset, self.vfac = f((N, C)), f((N, C))
         self.speed_scale = np.ones((N, C))
         self.speed_scale[:, 0] = self.agent_speed_scale
@@ -301,7 +280,7 @@ class FastWorld:
         self.beta[env, car] = 0.0
         self.r[env, car] = 0.0
         if x is not None or y is not None:
-            self.cl_idx[env, car] = K.global_nearest(self.x[env, car], self.y[env, car], self.cl)
+            self.track.place(env, car, self.x[env, car], self.y[env, car])
         self._scan(np.array([env]))
 
     def remove_car(self, env: int, car: int) -> None:
@@ -370,10 +349,7 @@ class FastWorld:
             respawned = self._respawn_obstacles(collided)
             # every car's centerline station, by a local search (traffic, progress): a global
             # nearest point would jump between the arms of a crossing (figure eight)
-            s_prev = self.cl_idx[:, 0] * self.cl_ds
-            K.nearest_index(self.x, self.y, self.cl, self.cl_idx, 10, 40)
-            lap = len(self.cl) * self.cl_ds
-            ds = (self.cl_idx[:, 0] * self.cl_ds - s_prev + lap / 2) % lap - lap / 2
+            ds = self.track.update(self.x, self.y)
             self.prog += -ds if self.heading == "reversed" else ds
         if observe:
             self._scan_all(self.observe)
