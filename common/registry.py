@@ -45,6 +45,10 @@ class ControllerSpec:
     policy: str | None = None
     """Shipped policy it runs (common/data/policies/NAME.npz), if any."""
     label: str = ""
+    charge_ms: float = 0.0
+    """Lockstep: the compute time (ms) the sim charges each of its commands by default (so a cell
+    does not change with the machine's load): its in-process median in docs/benchmarks.md
+    (`racecav bench controllers`, 2026-11-30), see CHARGE_SOURCE."""
     model: Path | None = None
     """The weights file it needs, when resolved (the harness fills it in; ``--model`` overrides)."""
 
@@ -54,18 +58,20 @@ HOLD_SPEED = 1.0
 
 CONTROLLERS: dict[str, ControllerSpec] = {c.name: c for c in (
     ControllerSpec("drl-avoid", ("policy", "--model", "avoid"), "policy", "racecav.services.policy.service",
-                   "avoid", "DRL avoid (trained on conflicts)"),
+                   "avoid", "DRL avoid (trained on conflicts)", charge_ms=0.008),
     # The ablation's first row (docs/training.md): the paper's observation, action and reward,
     # trained with the conflict mix; what the paper's design reaches once it has seen conflicts.
     ControllerSpec("drl-avoid-paper", ("policy", "--model", "avoid-paper"), "policy",
-                   "racecav.services.policy.service", "avoid-paper", "DRL paper design + conflict mix (ablation row 1)"),
+                   "racecav.services.policy.service", "avoid-paper", "DRL paper design + conflict mix (ablation row 1)",
+                   charge_ms=0.008),
     ControllerSpec("drl-reversed", ("policy", "--model", "reversed"), "policy", "racecav.services.policy.service",
-                   "reversed", "DRL reversed heading"),
+                   "reversed", "DRL reversed heading", charge_ms=0.005),
     ControllerSpec("drl-default", ("policy", "--model", "default"), "policy", "racecav.services.policy.service",
-                   "default", "DRL default"),
+                   "default", "DRL default", charge_ms=0.006),
     ControllerSpec("drl-racing", ("policy", "--model", "racing"), "policy", "racecav.services.policy.service",
-                   "racing", "DRL racing (stage 1, not in the paper's table)"),
-    ControllerSpec("mpc-apf", ("baseline",), "baseline", "racecav.services.baseline.service", None, "MPC-APF"),
+                   "racing", "DRL racing (stage 1, not in the paper's table)", charge_ms=0.006),
+    ControllerSpec("mpc-apf", ("baseline",), "baseline", "racecav.services.baseline.service", None, "MPC-APF",
+                   charge_ms=2.313),
     # References without evasion: straight at the throttle that holds 1 m/s (the scenarios' ego
     # start speed: shows the scenarios are real conflicts), and straight at full throttle (the
     # agent's 2.7 m/s, about the DRL policies' speed: in the paper-timed side scenarios it is
@@ -76,8 +82,12 @@ CONTROLLERS: dict[str, ControllerSpec] = {c.name: c for c in (
     ControllerSpec("full-throttle", ("scripted", "--program", "1.0,0.0,100000000"), "scripted",
                    "racecav.services.sim.scripted", None, "no evasion (straight, full throttle, scripted)"),
     ControllerSpec("mpc-apf-fast", ("baseline", "--v-ref", "2.7"), "baseline", "racecav.services.baseline.service",
-                   None, "MPC-APF at v_ref 2.7 m/s (not in the paper)"),
+                   None, "MPC-APF at v_ref 2.7 m/s (not in the paper)", charge_ms=2.313),
 )}
+CHARGE_SOURCE = ("docs/benchmarks.md, section controllers (2026-11-30): in-process median per shipped policy "
+                 "(`PolicyService.act`) and of the MPC-APF step; the scripted references compute nothing to "
+                 "speak of (charged 0)")
+"""Where each ControllerSpec.charge_ms comes from (printed in docs/results.md)."""
 TABLE_CONTROLLERS = ("mpc-apf", "drl-default", "drl-reversed")
 """The paper's Table 1 rows."""
 DEFAULT_TABLE = ("mpc-apf", "drl-default", "drl-reversed", "drl-avoid", "drl-avoid-paper", "scripted", "full-throttle", "mpc-apf-fast")

@@ -47,9 +47,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--suite: trials per scenario file (default 5: 100 per family of 20 files)")
     p.add_argument("--table", action="store_true",
                    help="every controller x the three intersection scenarios; writes docs/results.md")
-    p.add_argument("--sections", help="--table: comma-separated subset of table1,conflict,suite,free (default "
-                   "all: the paper's Table 1, the conflict-timed paper scenarios, the conflict suite's test split "
-                   "per family, the open suite's test split: free intersections)")
+    p.add_argument("--sections", help="--table: comma-separated subset of table1,conflict,suite,free,roads "
+                   "(default all: the paper's Table 1, the conflict-timed paper scenarios, the conflict suite's test "
+                   "split per family, the open suite's test split: free intersections, the roads suite's test / "
+                   "ood / controls splits: generalization)")
+    p.add_argument("--roads-controllers", help="--table: the rows of the generalization section (roads), a "
+                   "comma-separated subset of --controllers (default: all of them; none: no row)")
+    p.add_argument("--roads-suite", help="--table: the generalization section's suite (default roads, under "
+                   "runs/suites; or a DIR with suite.json); the section is skipped when it is not generated")
     p.add_argument("--controllers", help="--table: comma-separated subset "
                    "(default: mpc-apf,drl-default,drl-reversed,scripted,full-throttle,mpc-apf-fast)")
     p.add_argument("--trials", type=int, help="trials per scenario (default 10; --table: 100)")
@@ -57,6 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
                    help="sim mode: lockstep (reproducible; the controller's compute time is charged "
                    "as actuation delay) or realtime (wall clock)")
+    p.add_argument("--compute-charge", choices=["fixed", "measured"], default="fixed",
+                   help="lockstep: the compute time charged to each command: fixed (default: the controller's "
+                   "benchmarked time, the registry's charge_ms, so a cell repeats whatever the machine's load) or "
+                   "measured (each command's own compute_ns: moves with the load)")
     p.add_argument("--real-time-factor", type=float, default=1.0, help="realtime mode: sim s per wall s")
     p.add_argument("--json", type=Path, help="results file (default runs/eval/SCENARIO-CONTROLLER.json)")
     p.add_argument("--jsonl", type=Path, help="per-trial progress file (default: the --json path with .jsonl)")

@@ -78,6 +78,10 @@ def scan_kind(ctrl: Controller) -> str:
     return json.loads(meta.read_text()).get("lidar", "paper") if meta.is_file() else "paper"
 
 
+COMPUTE_CHARGES = ("fixed", "measured")
+"""Lockstep compute charge: the registry's benchmarked charge_ms, or each command's compute_ns."""
+
+
 class HarnessError(RuntimeError):
     """A trial could not run (a process died, the bus stopped answering...)."""
 
@@ -203,11 +207,19 @@ class Harness:
         (``<scenario>-<index>-seed<seed>.mcap``; what came before the first trial: setup.mcap).
     :param safety: also run ``racecav safety`` (the emergency-brake supervisor; in lockstep the
         sim waits for its verdict on every scan, so its brakes are deterministic too).
+    :param compute_charge: lockstep: "fixed" (default) charges every command the controller's
+        benchmarked compute time (registry ``charge_ms``), so a trial repeats bit for bit whatever
+        the machine's load; "measured" charges each command its own ``compute_ns``.
     """
 
     def __init__(self, cfg: Config, controller: Controller, mode: str, scenario: str, log_dir: Path,
-                 real_time_factor: float = 1.0, record_dir: Path | None = None, safety: bool = False):
+                 real_time_factor: float = 1.0, record_dir: Path | None = None, safety: bool = False,
+                 compute_charge: str = "fixed"):
+        if compute_charge not in COMPUTE_CHARGES:
+            raise ValueError(f"compute_charge: one of {COMPUTE_CHARGES}, not {compute_charge!r}")
         self.cfg, self.ctrl, self.mode, self.log_dir = cfg, controller, mode, Path(log_dir)
+        self.charge_ms = controller.charge_ms if compute_charge == "fixed" and mode == "lockstep" else None
+        """The compute time (ms) charged to every command; None: each command's own."""
         self.safety = safety
         self.record_dir = Path(record_dir) if record_dir is not None else None
         self.first_scenario, self.rtf = scenario, real_time_factor
@@ -218,7 +230,7 @@ class Harness:
         self.procs: dict[str, object] = {}
         self._stack = ExitStack()
         self.scenario_ref: str | None = None
-        self.duration_s = 0.0
+        self.duration_s = self.route_m = 0.0
 
     # ------------------------------------------------------------------ processes
     def __enter__(self) -> "Harness":
@@ -243,6 +255,8 @@ class Harness:
                 "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf),
                 # a wide-view policy needs the wide scan (it holds the paper's rays too)
                 "RACECAV_SIM__SCAN": scan_kind(self.ctrl)})
+            if self.charge_ms is not None:
+                env["RACECAV_SIM__LOCKSTEP_COMPUTE_MS"] = repr(float(self.charge_ms))
             if self.safety:  # before the sim: a lockstep sim waits for its verdicts
                 env["RACECAV_SIM__LOCKSTEP_SAFETY"] = "true"
                 self._start("safety", ["safety"], env)
@@ -289,7 +303,8 @@ class Harness:
         """Trials from now on use scenario ``ref`` (a name or a TOML path the sim can read)."""
         from racecav.common.scenario import load_scenario
 
-        self.duration_s = load_scenario(ref).duration_s
+        sc = load_scenario(ref)
+        self.duration_s, self.route_m = sc.duration_s, sc.success.min_progress_m
         self.scenario_ref = ref
         self._need_scenario = True
 
@@ -384,11 +399,15 @@ class Harness:
             prev = o if o is not None else prev
             filled.append(prev)
         n_obs = min((len(o.obstacles) for o in filled if o is not None), default=0)
-        tracks, gaps, centres = [], [], []
+        tracks, gaps, centres, moving, sizes = [], [], [], [], []
         for k in range(n_obs):
-            tr = np.array([(o.obstacles[k].x, o.obstacles[k].y, o.obstacles[k].yaw) for o in filled])
+            tr4 = np.array([(o.obstacles[k].x, o.obstacles[k].y, o.obstacles[k].yaw, o.obstacles[k].speed)
+                            for o in filled])
+            tr = tr4[:, :3]
             ob = filled[0].obstacles[k]
             tracks.append(tr)
+            moving.append(tr4)
+            sizes.append((ob.length, ob.width))
             ca = metrics.box_corners(ego[:, 0], ego[:, 1], ego[:, 2], self.car.length, self.car.width)
             cb = metrics.box_corners(tr[:, 0], tr[:, 1], tr[:, 2], ob.length, ob.width)
             gaps.append(metrics.footprint_gap(ca, cb).min())
@@ -402,6 +421,12 @@ class Harness:
             r = lambda a: [tuple(round(float(v), 4) for v in row) for row in a]  # noqa: E731
             traj = Trajectory(t=[round(float(v), 4) for v in t], ego=r(ego), obstacles=[r(tr) for tr in tracks])
         collided = bool(info["collided"])
+        c, s_ = np.cos(ego[:, 2]), np.sin(ego[:, 2])
+        body = np.array([(st.vx, st.vy) for st in states])
+        velocity = np.stack([c * body[:, 0] - s_ * body[:, 1], s_ * body[:, 0] + c * body[:, 1]], -1)
+        measures = metrics.trial_measures(t, ego, velocity, moving, sizes, (self.car.length, self.car.width),
+                                          collided, str(info.get("contact_with") or ""),
+                                          float(info["progress_m"]), self.route_m, bool(info["success"]))
         return Trial(index=index, seed=seed, success=bool(info["success"]), collided=collided,
                      contact_with=str(info.get("contact_with") or ""),
                      contact_time_s=float(info["t"]) if collided else None, end_time_s=float(info["t"]),
@@ -411,7 +436,7 @@ class Harness:
                      steps=len(states), commands=len(cmds), latency_ms=stats(latency),
                      compute_ms=stats(compute), wall_s=wall_s,
                      latency_clock="+".join(clocks) or "none", latency_steps_ms=[round(v, 4) for v in latency],
-                     compute_steps_ms=[round(v, 4) for v in compute], trajectory=traj)
+                     compute_steps_ms=[round(v, 4) for v in compute], trajectory=traj, measures=measures)
 
 
 def _tail(path: Path, n: int = 15) -> str:

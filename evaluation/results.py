@@ -51,6 +51,35 @@ class Trajectory(_Strict):
     """Per obstacle car: x, y, yaw per row (same rows as ``t``)."""
 
 
+class Measures(_Strict):
+    """The benchmark's per-trial measures, computed when the trial ends from its recorded ground
+    truth (evaluation/metrics.py holds the thresholds; docs/results.md defines them)."""
+
+    impact_speed_mps: float | None = None
+    """Contact: speed relative to what was hit (a car's velocity, a wall's none) at the last
+    control step before contact; null without contact."""
+    impact_band: int | None = Field(None, ge=0, le=4)
+    """Euro NCAP AEB band of the impact speed, Froude-scaled to 1/10: 0 below 0.44 m/s (5 km/h full
+    scale, scores 1), 1 below 1.32 (15 km/h, 0.75), 2 below 2.64 (30 km/h, 0.5), 3 below 3.51
+    (40 km/h, 0.25), 4 above (0)."""
+    frozen: bool = False
+    """Standing (< 0.05 m/s) more than 2 s while its path was free, or the time ran out without
+    contact short of its route."""
+    frozen_reason: Literal["", "standing", "short"] = ""
+    longest_free_standing_s: float = 0.0
+    """Longest time standing with the path free (the corridor 1.5 m ahead, free for 1 s after)."""
+    from_rest: bool = False
+    """It started standing."""
+    drive_off_s: float | None = None
+    """From rest: trial time when its speed first reached 0.2 m/s; null if it never did (or it
+    did not start from rest)."""
+    route_completion: float = Field(0.0, ge=0, le=1)
+    """progress_m / the scenario's min_progress_m, clipped to [0, 1]."""
+    infraction: Literal["", "vehicle", "static", "timeout"] = ""
+    driving_score: float = Field(0.0, ge=0, le=1)
+    """CARLA Leaderboard: route_completion x 0.6 (vehicle) / 0.65 (static) / 0.7 (timeout)."""
+
+
 class Trial(_Strict):
     """One trial."""
 
@@ -93,6 +122,8 @@ class Trial(_Strict):
     compute_steps_ms: list[float] = []
     """Every step's compute_ns in ms."""
     trajectory: Trajectory | None = None
+    measures: Measures | None = None
+    """The benchmark's measures (null in cells recorded before they existed)."""
 
 
 class TrialRecord(_Strict):
@@ -119,6 +150,10 @@ class ControllerInfo(_Strict):
     service: str
     weights_sha256: str | None = None
     """sha256 of the policy weights file evaluated (DRL controllers)."""
+    compute_charge_ms: float | None = None
+    """Lockstep: the fixed compute time the sim charged each command (the registry's charge_ms);
+    null: each command's own measured compute_ns (``--compute-charge measured``, and every cell
+    recorded before the fixed charge)."""
 
 
 class Summary(_Strict):
@@ -133,6 +168,20 @@ class Summary(_Strict):
     latency_ms: Stats
     """Over every step of every trial."""
     compute_ms: Stats
+    measured: int = Field(0, ge=0)
+    """Trials with measures (the fields below are over these; null when none)."""
+    frozen: int | None = None
+    timeouts: int | None = None
+    """No contact, short of the route when the time ran out (frozen by definition)."""
+    mean_driving_score: float | None = None
+    mean_route_completion: float | None = None
+    impact_bands: list[int] | None = None
+    """Collisions per Euro NCAP impact band (Measures.impact_band 0-4)."""
+    median_impact_speed_mps: float | None = None
+    from_rest: int | None = None
+    never_drove_off: int | None = None
+    """From rest and never reached 0.2 m/s."""
+    median_drive_off_s: float | None = None
 
 
 class RunResult(_Strict):
@@ -221,7 +270,25 @@ def summarize(trials: list[Trial]) -> Summary:
                    collisions=sum(t.collided for t in trials),
                    mean_progress_m=float(np.mean([t.progress_m for t in trials])) if n else None,
                    median_min_gap_m=float(np.median(gaps)) if gaps else None,
-                   latency_ms=stats(latencies_ms), compute_ms=stats(computes_ms))
+                   latency_ms=stats(latencies_ms), compute_ms=stats(computes_ms),
+                   **measure_summary([t.measures for t in trials if t.measures is not None]))
+
+
+def measure_summary(ms: list[Measures]) -> dict:
+    """Summary fields over the trials' measures (empty: measured 0, the rest null)."""
+    if not ms:
+        return {}
+    impacts = [m.impact_speed_mps for m in ms if m.impact_speed_mps is not None]
+    rest = [m for m in ms if m.from_rest]
+    offs = [m.drive_off_s for m in rest if m.drive_off_s is not None]
+    return {"measured": len(ms), "frozen": sum(m.frozen for m in ms),
+            "timeouts": sum(m.infraction == "timeout" for m in ms),
+            "mean_driving_score": float(np.mean([m.driving_score for m in ms])),
+            "mean_route_completion": float(np.mean([m.route_completion for m in ms])),
+            "impact_bands": [sum(m.impact_band == b for m in ms) for b in range(5)],
+            "median_impact_speed_mps": float(np.median(impacts)) if impacts else None,
+            "from_rest": len(rest), "never_drove_off": len(rest) - len(offs),
+            "median_drive_off_s": float(np.median(offs)) if offs else None}
 
 
 # ---------------------------------------------------------------------------- JSONL progress

@@ -82,6 +82,8 @@ def suite_json(name: str, split: str, controller: str, k: int, seed: int, cells:
                                               for c in cells),
             "stopped_reason": "" if error is None else f"{type(error).__name__}: {error}",
             "wall_s": round(wall_s, 1),
+            "compute_charge_ms": sorted({r.controller.compute_charge_ms for r in results.values()},
+                                        key=lambda v: (v is None, v or 0.0)),
             "summary": overall.model_dump(mode="json"),
             "families": {f: s.model_dump(mode="json") for f, s in fams.items()},
             "scenarios": [{"file": c.path.name, "family": c.family,
@@ -120,7 +122,8 @@ def run_suite(args, cfg) -> int:
     wall0 = time.monotonic()
     results, error = {}, None
     try:
-        with Harness(cfg, ctrl, args.mode, str(cells[0].path.resolve()), out / "logs", args.real_time_factor) as h:
+        with Harness(cfg, ctrl, args.mode, str(cells[0].path.resolve()), out / "logs", args.real_time_factor,
+                     compute_charge=getattr(args, "compute_charge", "fixed")) as h:
             results, error = run_cells(h, cells, k, seed, out, args.resume, bar)
     except HarnessError as e:
         error = e
@@ -137,7 +140,7 @@ def run_suite(args, cfg) -> int:
     plot = plot_success_bars(rows, list(fams), args.plot or json_path.with_suffix(".png"),
                              title=f"{ctrl.label} on suite {name} ({args.split}), {k} trials per file (95 % CI)")
     for fam, s in fams.items():
-        print(f"  {fam:14s} {_cell(s)}")
+        print(f"  {fam:18s} {_cell(s)}")
     print(f"{ctrl.label} on suite {name}/{args.split}: {_cell(doc['summary'])}")
     print(f"results: {json_path}; chart: {plot}")
     if error is not None:
@@ -151,4 +154,21 @@ def _cell(s: dict) -> str:
         return "no trials"
     lo, hi = s["ci95"]
     return (f"{100 * s['success_rate']:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}] ({s['successes']}/{s['trials']}, "
-            f"{s['collisions']} collisions)")
+            f"{s['collisions']} collisions)" + measures_text(s))
+
+
+def measures_text(s: dict) -> str:
+    """The benchmark's measures of a summary (results.Summary as a dict), "" when none recorded."""
+    n = s.get("measured") or 0
+    if not n:
+        return ""
+    text = (f"; frozen {s['frozen']}/{n}, driving score {s['mean_driving_score']:.2f}, "
+            f"route {100 * s['mean_route_completion']:.0f} %")
+    if s["collisions"]:
+        text += (f", impact median {s['median_impact_speed_mps']:.2f} m/s (Euro NCAP bands "
+                 + "/".join(str(b) for b in s["impact_bands"]) + ")")
+    if s["from_rest"]:
+        off = s["median_drive_off_s"]
+        text += (f", from rest {s['from_rest']}: never drove off {s['never_drove_off']}, drive-off median "
+                 + ("n/a" if off is None else f"{off:.2f} s"))
+    return text

@@ -124,7 +124,8 @@ def run_trials(harness, ref: str, path: Path, trials: int, base_seed: int, jsonl
         machine=machine(),
         scenario=R.ScenarioInfo(name=sc.name, ref=ref, digest=digest, duration_s=sc.duration_s),
         controller=R.ControllerInfo(name=name, command=["racecav", *harness.ctrl.args],
-                                    service=harness.ctrl.service, weights_sha256=weights),
+                                    service=harness.ctrl.service, weights_sha256=weights,
+                                    compute_charge_ms=getattr(harness, "charge_ms", None)),
         mode=harness.mode, base_seed=base_seed, trials_requested=trials, complete=len(finished) == trials,
         stopped_reason=stopped, wall_s=time.monotonic() - wall0, summary=R.summarize(finished),
         sim_counters=sim_counters, controller_counters=ctrl_counters, trials=finished)
@@ -236,7 +237,8 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
         record = getattr(args, "record", None)
         record_dir = (args.out_dir / "mcap" / stem) if record is True else record
         with Harness(cfg, ctrl, args.mode, ref, args.out_dir / "logs" / stem, args.real_time_factor,
-                     record_dir=record_dir, safety=safety) as h:
+                     record_dir=record_dir, safety=safety,
+                     compute_charge=getattr(args, "compute_charge", "fixed")) as h:
             res, error = run_trials(h, ref, path, trials, seed, jsonl, args.resume,
                                     bar=NoBar() if args.no_progress else None)
     except HarnessError as e:
