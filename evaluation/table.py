@@ -32,11 +32,14 @@ SCENARIOS = registry.PAPER_SCENARIOS
 CONFLICT = registry.CONFLICT_SCENARIOS
 SHORT = registry.SHORT
 PAPER_TABLE1 = registry.PAPER_TABLE1
-SECTIONS = ("table1", "conflict", "suite", "free")
+SECTIONS = ("table1", "conflict", "suite", "free", "roads")
 IMG_DIR = Path("docs/img")
 # the suite sections: (suite, its `racecav suite generate` --n, --n-train, --seed), made on first use
 # exactly as docs/world.md documents them; --suite replaces the conflict suite
 SUITE_SECTIONS = {"suite": ("conflicts", 140, 1400, 0), "free": ("open", 20, 200, 3)}
+ROADS_SUITE = "roads"
+"""The generalization section's suite (`racecav suite generate --name roads`): every split of its
+manifest but train (test, ood, controls), per family; skipped when it is not generated."""
 STORE_NAME = "results-data"  # the committed cell store, beside the document (evaluation/store.py)
 
 
@@ -119,6 +122,21 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
             return 2
     safety = getattr(args, "safety", "off")
     runs = [(n, on) for n in names for on in {"off": (False,), "on": (True,), "both": (False, True)}[safety]]
+    roads: dict[str, tuple[str, list]] = {}  # split -> (suite name, cells): the generalization section
+    roads_rows: set[tuple[str, bool]] = set()
+    if "roads" in sections:
+        roads, why = roads_splits(getattr(args, "roads_suite", None) or ROADS_SUITE, progress=not args.no_progress)
+        if why:
+            print(f"racecav eval --table: section roads skipped: {why}", file=sys.stderr)
+        rn = getattr(args, "roads_controllers", None)
+        picked = names if rn is None else [c.strip() for c in rn.split(",") if c.strip() and c.strip() != "none"]
+        bad = [n for n in picked if n not in names]
+        if bad:
+            print(f"racecav eval --table: --roads-controllers {bad}: not among the table's controllers {names}",
+                  file=sys.stderr)
+            return 2
+        # the main tables' rows only (with --safety both: without the supervisor)
+        roads_rows = {(n, on) for n, on in runs if roads and n in picked and on == (safety == "on")}
     trials = args.trials if args.trials is not None else 100
     if trials < 1:
         print("racecav eval: --trials must be >= 1", file=sys.stderr)
@@ -132,7 +150,8 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         args.resume = True
     try:
         store = CellStore(_store_dir(args))
-        cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store) for n, on in runs}
+        cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store,
+                                     roads if (n, on) in roads_rows else {}) for n, on in runs}
     except ValueError as e:  # a broken store file
         print(f"racecav eval --table: {e}", file=sys.stderr)
         return 2
@@ -147,17 +166,19 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
             return 2
     results: dict[tuple[str, str], object] = {}
     suite_results: dict[str, dict[str, dict]] = {sec: {} for sec in suites}
+    roads_results: dict[str, dict[str, dict]] = {split: {} for split in roads}
     wall0 = time.monotonic()
     error = None
-    per_run = len(scen) * trials + sum(len(c) for _, c in suites.values()) * k_suite
-    total = len(runs) * per_run
+    per_run = {r: sum(c.trials for c in cs) for r, cs in cells.items()}
+    total = sum(per_run.values())
     jobs = min(getattr(args, "jobs", 1), len(runs))
     if jobs > 1:  # the cells are computed by child tables; the pass below reads them and writes the doc
-        rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total)
+        rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total, roads_rows)
         if rc != 0:
             return rc
         args.resume = True
-        cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store) for n, on in runs}
+        cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store,
+                                     roads if (n, on) in roads_rows else {}) for n, on in runs}
     bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="table", dynamic_ncols=True,
                                                  mininterval=1.0)
     try:
@@ -168,15 +189,19 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
             if all(c.stored is not None for c in cells[(name, on)]):  # a committed row: no services needed
                 for c in cells[(name, on)]:
                     bar.update(c.trials)
-                    if c.section in suites:
+                    if c.section.startswith("roads/"):
+                        roads_results[c.section[6:]].setdefault(key, {})[c.cell] = c.stored
+                    elif c.section in suites:
                         suite_results[c.section].setdefault(key, {})[c.cell] = c.stored
                     else:
                         results[(key, c.cell)] = c.stored
                         write_json(c.stored, out / f"{_stem(name, c.cell, args.mode, on)}.json")
                 continue
-            first = scen[0] if scen else str(next(iter(suites.values()))[1][0].path.resolve())
+            every_suite = [*suites.values(), *(roads.values() if (name, on) in roads_rows else ())]
+            first = scen[0] if scen else str(every_suite[0][1][0].path.resolve())
             try:
-                with Harness(cfg, ctrl, args.mode, first, out / "logs" / key, args.real_time_factor, safety=on) as h:
+                with Harness(cfg, ctrl, args.mode, first, out / "logs" / key, args.real_time_factor, safety=on,
+                             compute_charge=getattr(args, "compute_charge", "fixed")) as h:
                     for sc in scen:
                         stem = _stem(name, sc, args.mode, on)
                         res, error = run_trials(h, sc, SCENARIOS_DIR / f"{sc}.toml", trials, seeds[sc],
@@ -192,6 +217,14 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
                         suite_results[sec][key], error = run_cells(
                             h, suite_cells_, k_suite, args.seed or 0, out / f"suite-{suite_name}" / key,
                             args.resume, bar, store=(store, key, f"suite-{suite_name}"))
+                        if error is not None:
+                            raise error
+                    for split, (suite_name, split_cells) in (roads.items() if (name, on) in roads_rows else ()):
+                        from racecav.evaluation.suite_eval import run_cells
+
+                        roads_results[split][key], error = run_cells(
+                            h, split_cells, k_suite, args.seed or 0, out / f"suite-{suite_name}-{split}" / key,
+                            args.resume, bar, store=(store, key, f"suite-{suite_name}-{split}"))
                         if error is not None:
                             raise error
             except HarnessError as e:
@@ -213,6 +246,16 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         for n, doc_ in docs[sec].items():
             (out / f"suite-{suite_name}").mkdir(parents=True, exist_ok=True)
             (out / f"suite-{suite_name}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
+    roads_docs: dict[str, dict] = {}  # split -> {row: suite_json}
+    for split, (suite_name, split_cells) in roads.items():
+        from racecav.evaluation.suite_eval import suite_json
+
+        roads_docs[split] = {n: suite_json(suite_name, split, n, k_suite, args.seed or 0, split_cells, r,
+                                           sum(t.wall_s for c in r.values() for t in c.trials), None)
+                             for n, r in roads_results[split].items()}
+        for n, doc_ in roads_docs[split].items():
+            (out / f"suite-{suite_name}-{split}").mkdir(parents=True, exist_ok=True)
+            (out / f"suite-{suite_name}-{split}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
     commits: dict[str, int] = {}  # the code the reused cells were measured with
     for c in (c for cs in cells.values() for c in cs if c.stored is not None):
         commits[c.stored.git_commit] = commits.get(c.stored.git_commit, 0) + 1
@@ -221,7 +264,8 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print(f"racecav eval --table: {provenance}", file=sys.stderr)
     keys_ = [n + ("+safety" if safety == "on" else "") for n in names]  # the main tables' rows
     doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections,
-                            suite=docs.get("suite"), free=docs.get("free"), provenance=provenance)
+                            suite=docs.get("suite"), free=docs.get("free"), provenance=provenance,
+                            roads=(roads, roads_docs) if roads_docs else None)
     for name in keys_:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
         print(f"{_label(name):34s} " + "  ".join(
@@ -248,8 +292,9 @@ class RowCell:
 
 
 def _row_cells(name: str, on: bool, scen: list[str], seeds: dict, trials: int, suites: dict, k: int, args,
-               out: Path, store: CellStore) -> list[RowCell]:
-    """Every cell of the row (controller ``name``, supervisor ``on``), with what the store holds of it."""
+               out: Path, store: CellStore, roads: dict | None = None) -> list[RowCell]:
+    """Every cell of the row (controller ``name``, supervisor ``on``), with what the store holds of it;
+    ``roads``: split -> (suite name, cells) of the generalization section when the row has it."""
     from racecav.common.scenario import SCENARIOS_DIR
     from racecav.evaluation.harness import CONTROLLERS
     from racecav.evaluation.trials import cell_key
@@ -267,7 +312,46 @@ def _row_cells(name: str, on: bool, scen: list[str], seeds: dict, trials: int, s
     for sec, (suite_name, files) in suites.items():
         cells += [RowCell(sec, c.path.name, k, out / f"suite-{suite_name}" / row / f"{c.path.stem}.jsonl",
                           stored(f"suite-{suite_name}", c.path.name, c.path.resolve(), seed, k)) for c in files]
+    for split, (suite_name, files) in (roads or {}).items():
+        group = f"suite-{suite_name}-{split}"
+        cells += [RowCell(f"roads/{split}", c.path.name, k, out / group / row / f"{c.path.stem}.jsonl",
+                          stored(group, c.path.name, c.path.resolve(), seed, k)) for c in files]
     return cells
+
+
+def roads_splits(spec: str, progress: bool = True) -> tuple[dict[str, tuple[str, list]], str]:
+    """The generalization section's splits: ({split: (suite name, cells)} of every split of the suite's
+    manifest but train, in its order; why it is skipped, or "").
+
+    The roads suite is generated first, as the suite sections' are, when it is missing and its suite
+    file (common/data/suites/roads.toml) exists: a fresh clone rewrites the section from the store."""
+    from racecav.common import procs
+    from racecav.common.scenario import open_suite
+    from racecav.evaluation.suite import SUITES_DIR
+    from racecav.evaluation.suite_eval import suite_cells
+
+    try:
+        suite = open_suite(spec)
+    except ValueError as e:
+        if spec != ROADS_SUITE or not (SUITES_DIR / f"{spec}.toml").is_file():
+            return {}, str(e)
+        import subprocess
+
+        cmd = ["suite", "generate", "--name", spec, "--splits", "test,ood,controls"]  # train: for training only
+        print(f"racecav eval --table: generating the {spec} suite's evaluation splits first (racecav "
+              f"{' '.join(cmd)})", flush=True)
+        r = subprocess.run(procs.racecav_cmd(*cmd, *(() if progress else ("--no-progress",))),
+                           stdout=None if progress else subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if r.returncode != 0:
+            return {}, f"`racecav suite generate --name {spec}` failed: {(r.stderr.strip().splitlines() or [''])[-1]}"
+        try:
+            suite = open_suite(spec)
+        except ValueError as e2:
+            return {}, str(e2)
+    splits = [sp for sp in suite.manifest.get("splits", {}) if sp != "train"]
+    if not splits:
+        return {}, f"suite {spec} has no split but train"
+    return {sp: suite_cells(spec, sp) for sp in splits}, ""
 
 
 def _done(cells: list[RowCell]) -> int:
@@ -294,7 +378,7 @@ def _lines(path: Path) -> int:
 
 
 def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sections: list[str], cells: dict,
-              per_run: int, out: Path, total: int) -> int:
+              per_run: dict, out: Path, total: int, roads_rows: set = frozenset()) -> int:
     """``--jobs N``: a pool of N child ``racecav eval --table`` processes (each with its own router,
     sim and controller: about one core each), one per (controller, safety) row, the rows with the
     most trials left first, so that the pool ends on short ones and no core idles for long. They
@@ -308,8 +392,10 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
 
     base = ["eval", "--table", "--trials", str(trials), "--trials-per-scenario", str(args.trials_per_scenario),
             "--sections", ",".join(sections), "--mode", args.mode, "--real-time-factor", str(args.real_time_factor),
-            "--out-dir", str(args.out_dir), "--no-progress"]
-    for flag, value in (("--seed", args.seed), ("--suite", args.suite), ("--config", getattr(args, "config", None))):
+            "--out-dir", str(args.out_dir), "--no-progress",
+            "--compute-charge", getattr(args, "compute_charge", "fixed")]
+    for flag, value in (("--seed", args.seed), ("--suite", args.suite), ("--config", getattr(args, "config", None)),
+                        ("--roads-suite", getattr(args, "roads_suite", None))):
         if value is not None:
             base += [flag, str(value)]
     if args.resume:
@@ -319,8 +405,8 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
     for name, on in runs:
         key = name + ("+safety" if on else "")
         done = _done(cells[(name, on)]) if args.resume else 0  # else every cell starts over
-        if per_run - done > 0:
-            rows.append((per_run - done, name, on, key))
+        if per_run[(name, on)] - done > 0:
+            rows.append((per_run[(name, on)] - done, name, on, key))
     rows.sort(key=lambda r: -r[0])  # stable: equal rows keep the --controllers order
     pending = list(enumerate(rows))
     running: dict[int, object] = {}
@@ -335,7 +421,8 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
                 log_path = out / "logs" / f"job-{k}.log"
                 running[k] = procs.start(base + ["--safety", "on" if on else "off", "--controllers", name,
                                                  "--doc", str(out / "logs" / f"job-{k}.md"),
-                                                 "--store", str(_store_dir(args))],
+                                                 "--store", str(_store_dir(args)),
+                                                 "--roads-controllers", name if (name, on) in roads_rows else "none"],
                                          dict(os.environ), log_path)
                 print(f"racecav eval --table --jobs {jobs}: job {k}: {key}, {left} trials (log {log_path})",
                       flush=True)
@@ -364,7 +451,7 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
                       error, sections=SECTIONS, suite: dict | None = None, free: dict | None = None,
-                      provenance: str = "") -> Path:
+                      provenance: str = "", roads: tuple[dict, dict] | None = None) -> Path:
     """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4;
     ``provenance``: store.drift_text of the reused cells, in the header."""
     from racecav.common.bench import machine
@@ -384,6 +471,10 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         cmd += f" --trials-per-scenario {args.trials_per_scenario}"
     if args.controllers:
         cmd += f" --controllers {args.controllers}"
+    if roads and getattr(args, "roads_controllers", None):
+        cmd += f" --roads-controllers {args.roads_controllers}"
+    if roads and getattr(args, "roads_suite", None):
+        cmd += f" --roads-suite {args.roads_suite}"
     if args.mode != "lockstep":
         cmd += f" --mode {args.mode}"
     if getattr(args, "safety", "off") != "off":
@@ -451,8 +542,11 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
               "Latency: scan -> command, from a scan's arrival at the router to the arrival there of the "
               "command answering it (its `scan_seq`), both stamped by the router's clock (Zenoh timestamping): "
               "the controller's whole leg (two hops, decode, compute, publish), pooled over every step; compute: "
-              "the controller's own `compute_ns`. In lockstep mode the sim applies each command `compute_ns` "
-              "into the control period (a slow controller pays for its slowness in sim time).", "",
+              "the controller's own `compute_ns`. In lockstep mode the sim applies each command its compute time "
+              "into the control period (a slow controller pays for its slowness in sim time): by default the "
+              "controller's benchmarked time (the registry's `charge_ms`, recorded per cell as "
+              "`controller.compute_charge_ms`), so a cell repeats whatever the machine's load; cells with "
+              "`compute_charge_ms: null` were charged their measured `compute_ns`.", "",
               "| controller | scenario | trials | success | collisions | median min gap (m) | mean progress (m) "
               "| scan->cmd median / p99 (ms) | compute median / p99 (ms) | trials wall (s) |",
               "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -486,6 +580,10 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
                                 img, doc)
     lines += _free_section({k: v for k, v in (free or {}).items() if k in names})
     lines += _safety_section(results, names, trials, suite or {}, free or {})
+    if roads:
+        from racecav.evaluation.roads_doc import roads_section
+
+        lines += roads_section(*roads, img, doc, label=_label)
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # --jobs N: N processes; --resume: continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "
