@@ -82,9 +82,10 @@ def roads_section(roads: dict, docs: dict, img: Path, doc: Path, label=str) -> l
     path = plot_success_bars(chart, [_title(sp) for sp in splits], img / f"results-{name}.png",
                              title=f"Suite {name}: success per split, {k} trials per file (95 % CI)")
     lines += ["", f"![{name}]({path.relative_to(doc.parent)})", ""]
-    # impacts and drive-off, per controller over the conflict splits
-    lines += ["| controller | split | collisions | median impact (m/s) | per Euro NCAP band (" + bands
-              + " m/s and above) | from rest | never drove off | median drive-off (s) |",
+    # impacts and drive-off, per controller and split
+    edges = [f"< {b:.2f}" for b in IMPACT_BANDS_MPS] + [f">= {IMPACT_BANDS_MPS[-1]:.2f}"]
+    lines += ["| controller | split | collisions | median impact (m/s) | collisions per Euro NCAP band ("
+              + " / ".join(edges) + " m/s) | from rest | never drove off | median drive-off (s) |",
               "|---|---|---:|---:|---:|---:|---:|---:|"]
     for n in rows:
         for sp in splits:
