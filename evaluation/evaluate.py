@@ -54,7 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--roads-controllers", help="--table: the rows of the generalization section (roads), a "
                    "comma-separated subset of --controllers (default: all of them; none: no row)")
     p.add_argument("--roads-suite", help="--table: the generalization section's suite (default roads, under "
-                   "runs/suites; or a DIR with suite.json); the section is skipped when it is not generated")
+                   "runs/suites, generated first when missing; or a DIR with suite.json); the section is skipped, with "
+                   "a message, when there is no such suite")
     p.add_argument("--controllers", help="--table: comma-separated subset "
                    "(default: mpc-apf,drl-default,drl-reversed,scripted,full-throttle,mpc-apf-fast)")
     p.add_argument("--trials", type=int, help="trials per scenario (default 10; --table: 100)")

@@ -39,7 +39,8 @@ IMG_DIR = Path("docs/img")
 SUITE_SECTIONS = {"suite": ("conflicts", 140, 1400, 0), "free": ("open", 20, 200, 3)}
 ROADS_SUITE = "roads"
 """The generalization section's suite (`racecav suite generate --name roads`): every split of its
-manifest but train (test, ood, controls), per family; skipped when it is not generated."""
+manifest but train (test, ood, controls), per family; its evaluation splits are generated first
+when they are missing, and the section is skipped (with a message) when that cannot be done."""
 STORE_NAME = "results-data"  # the committed cell store, beside the document (evaluation/store.py)
 
 
