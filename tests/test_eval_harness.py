@@ -312,6 +312,7 @@ def test_code_drift_names_the_trial_code_changed_since_a_cell_was_measured(tmp_p
     assert "has not changed" in drift_text({rev: 3}, {rev: []}) and drift_text({}, {}) == ""
 
 
+@pytest.mark.timeout(1200)  # a fresh clone first generates the suites' evaluation splits (conflicts, open, roads)
 def test_committed_results_are_what_the_committed_store_writes(tmp_path):
     """docs/results.md is what its own command (from its header) writes from the committed cells
     (docs/results-data) alone: every number of its tables comes from a stored cell measured with the
@@ -323,7 +324,7 @@ def test_committed_results_are_what_the_committed_store_writes(tmp_path):
     cmd = re.search(r"Written by `racecav eval (--table[^`]*)`", committed).group(1).split()
     doc = tmp_path / "results.md"
     r = _eval(tmp_path / "out", *cmd, "--from-store", "--store", str(repo / "docs" / "results-data"),
-              "--doc", str(doc), timeout=600)
+              "--doc", str(doc), timeout=1150)
     assert r.returncode == 0, r.stdout + r.stderr
     assert _tables(doc.read_text()) == _tables(committed)
     assert not list((tmp_path / "out").rglob("*.jsonl"))
