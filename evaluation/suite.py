@@ -378,15 +378,6 @@ def straight_collisions(scenarios: list[Scenario], speeds=REFERENCE_SPEEDS, tria
     return out
 
 
-def _shift_ego(sc: Scenario, dy: float) -> Scenario:
-    """The scenario with its ego starting ``dy`` metres to its left."""
-    if not dy:
-        return sc
-    e = sc.ego
-    return sc.model_copy(update={"ego": e.model_copy(update={
-        "x": e.x - dy * math.sin(math.radians(e.yaw_deg)), "y": e.y + dy * math.cos(math.radians(e.yaw_deg))})})
-
-
 # --------------------------------------------------------------------------------- generation
 def _counts(ff: FamilyFile, n: int) -> dict[str, int]:
     """Files per family for n files in all (by weight, at least one each)."""
@@ -431,7 +422,7 @@ def generate(ff: FamilyFile, out: Path, n_test: int, n_train: int, seed: int = 0
                     batch.append((i, data, Scenario.model_validate(data)))
                 ok = np.ones(len(batch), bool)
                 for dy in VALIDATION_SHIFTS if ff.validate_conflicts else ():  # a margin: no near miss passes for a conflict
-                    shifted = [_shift_ego(b[2], dy) for b in batch]
+                    shifted = [b[2].ego_shifted(dy) for b in batch]
                     ok &= straight_collisions(shifted, seed=seed + 7919 * si).all(axis=1)
                 pending = []
                 for (i, data, _sc), good in zip(batch, ok):
