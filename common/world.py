@@ -360,26 +360,6 @@ def way_edges(w: Way, step_deg: float) -> tuple[list, list]:
     return left, right
 
 
-def way_centerline(w: Way, step: float = CENTERLINE_STEP) -> np.ndarray:
-    """(K, 2) points of a way's centre line, from its start, about ``step`` apart."""
-    x, y, h = w.x, w.y, math.radians(w.yaw_deg)
-    pts = [(x, y)]
-    for p in w.pieces:
-        if p.straight is not None:
-            n = max(1, math.ceil(p.straight / step))
-            pts += [(x + p.straight * k / n * math.cos(h), y + p.straight * k / n * math.sin(h)) for k in range(1, n + 1)]
-            x, y = pts[-1]
-            continue
-        r, turn = p.arc_radius, math.radians(p.arc_deg)
-        sgn = 1.0 if turn > 0 else -1.0
-        cx, cy = x - sgn * r * math.sin(h), y + sgn * r * math.cos(h)
-        n = max(1, math.ceil(r * abs(turn) / step))
-        pts += [(cx + sgn * r * math.sin(h + turn * k / n), cy - sgn * r * math.cos(h + turn * k / n)) for k in range(1, n + 1)]
-        h += turn
-        x, y = pts[-1]
-    return np.asarray(pts, dtype=np.float64)
-
-
 def _road_quad(r: Road) -> np.ndarray:
     c, s = math.cos(math.radians(r.yaw_deg)), math.sin(math.radians(r.yaw_deg))
     u, v = np.array([c, s]) * r.length / 2, np.array([-s, c]) * r.width / 2

@@ -169,12 +169,11 @@ class BenchmarkFile(_Strict):
         return self
 
 
-def is_benchmark(data: dict) -> bool:
-    """A suite file for this generator (``generator = "roads"``), not a conflict family file."""
-    return "generator" in data
-
-
 def load_benchmark(name_or_path: str | Path) -> BenchmarkFile:
+    """A roads suite file by name (common/data/suites/NAME.toml) or path.
+
+    :raises ValueError: naming the file and the invalid field.
+    """
     return load_toml(name_or_path, SUITES_DIR, BenchmarkFile, "suite")
 
 
@@ -239,11 +238,6 @@ class Ctx:
 
     def choice(self, seq):
         return seq[int(self.rng.integers(len(seq)))]
-
-
-def _line_hit_y(p: np.ndarray, d: np.ndarray, y: float) -> float:
-    """Parameter s where p + s d meets the line y = const."""
-    return (y - p[1]) / d[1]
 
 
 def _polyline_at(pts: np.ndarray, s: float) -> tuple[np.ndarray, int]:
