@@ -93,8 +93,19 @@ class SensorConfig(Section):
     spacing), which holds every view: the shipped avoid policy's (wide) and the paper's, so every
     controller takes its own view out of it (services/controller.py); paper = the car's 170 rays
     over 90 deg only (enough for the paper's policies and MPC-APF, 2x fewer bytes)."""
-    reset_wait_s: float = Field(2.0, ge=0)
-    """Pause after RESET before talking to the device (Slamtec SDK: about 2 s)."""
+    reset_wait_s: float = Field(0.002, ge=0)
+    """Pause after RESET before the first request: 2 ms, what Slamtec's "RPLIDAR Interface
+    Protocol and Application Notes" documents (section "Core Reset (RESET) Request", Fig. 4-3:
+    "host systems should wait for at least 2 milliseconds (ms) before sending another
+    request"). The core then boots (an S2: about 2 s); the driver polls GET_INFO meanwhile."""
+    reset_poll_s: float = Field(0.05, gt=0)
+    """Period of GET_INFO after RESET until the rebooted device answers (requests sent while it
+    boots are dropped)."""
+    reset_timeout_s: float = Field(2.0, gt=0)
+    """A device that has not answered GET_INFO this long after RESET is reset again."""
+    silence_timeout_s: float = Field(0.3, gt=0)
+    """No bytes at all for this long while scanning (a stopped device: health error, protection
+    stop) => ask the health, reset. A scanning S2 sends ~67 kB/s without pause."""
     spinup_s: float = Field(0.5, ge=0)
     """Pause between motor start and SCAN (some S2 firmware refuses an early SCAN)."""
     data_timeout_s: float = Field(1.0, gt=0)
@@ -102,6 +113,11 @@ class SensorConfig(Section):
     reconnect_s: float = Field(0.1, gt=0)
     """Retry period for reopening a vanished port (USB unplugged): one open() of a missing path
     is cheap, and this bounds the replug -> first scan time (<= 1 s: docs/reliability.md)."""
+    def driver_timings(self) -> dict[str, float]:
+        """The timing keyword arguments of :class:`~racecav.services.sensor.rplidar_driver.RplidarDriver`."""
+        return {k: getattr(self, k) for k in ("reset_wait_s", "reset_poll_s", "reset_timeout_s", "spinup_s",
+                                              "data_timeout_s", "silence_timeout_s", "reconnect_s")}
+
     max_gap_deg: float = Field(6.0, ge=0)
     """Widest hole between good samples that preprocessing fills by interpolation (deg)."""
     spike_abs_m: float = Field(0.3, ge=0)
@@ -651,6 +667,10 @@ class Ros2Config(Section):
     nice: int = Field(10, ge=0, le=19)
     """Niceness added to the mirror process: on a busy CPU the controllers go first (measured in
     docs/benchmarks.md, record). Set 0 when a ROS controller drives the car through /drive."""
+    max_payload_bytes: int = Field(1024, gt=0)
+    """A ROS input (``/drive``) payload larger than this is refused before decoding and counted
+    as invalid (an AckermannDriveStamped is ~60 bytes; the frame_id string is its only
+    variable part)."""
     batch_s: float = Field(0.01, ge=0)
     """Outgoing messages are converted and sent in batches this often (s), not in the
     subscriber callback: the mirror's traffic then does not meet the scan -> command burst at

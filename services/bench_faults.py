@@ -8,7 +8,8 @@ emulators on ptys).
 - soak: a live 10 Hz controller drives for ``--soak-s`` seconds: brake frames (spurious brakes);
 - e-stop: put -> brake latency; the latch across a kill -9 + restart of the actuator; an e-stop
   published while the actuator is down;
-- lidar: replug -> first revolution with the shipped timings; garbage-only stream -> reset;
+- lidar: replug -> first revolution with the shipped timings; garbage-only stream -> reset, and
+  -> scans again; a health error -> scans again;
 - router: SIGKILL, outage, restart on the same port -> first command through it;
 - fuzz: ``--fuzz-per-key`` hostile payloads on every input key (common/fuzz.py): services alive,
   every payload counted, exceptions (``errors``), RSS before/after.
@@ -259,8 +260,11 @@ def measure_estop(n: int) -> dict:
 
 
 def measure_lidar(replugs: int, garbage: int) -> dict:
-    """Replug -> first revolution (shipped timings) and garbage-only -> reset, on the emulator."""
+    """On the emulator (0.1 s boot after RESET), with the shipped timings: replug -> first
+    revolution; garbage-only stream -> reset, and its end -> first revolution; a 0.5 s health
+    error (the device stops scanning) -> first revolution after it ends."""
     from racecav.common.config import SensorConfig
+    from racecav.services.sensor import rplidar_protocol as rp
     from racecav.services.sensor.emulator import RplidarEmulator
     from racecav.services.sensor.rplidar_driver import RplidarDriver
 
@@ -274,12 +278,17 @@ def measure_lidar(replugs: int, garbage: int) -> dict:
             return data
 
     c = SensorConfig()
-    out: dict = {"replug_s": [], "garbage_reset_s": [], "data_timeout_s": c.data_timeout_s}
+    out: dict = {"replug_s": [], "garbage_reset_s": [], "garbage_recover_s": [], "health_recover_s": [],
+                 "data_timeout_s": c.data_timeout_s, "silence_timeout_s": c.silence_timeout_s,
+                 "reset_wait_s": c.reset_wait_s, "emulator_boot_s": 0.1}
+
+    def first_after(t: float) -> float | None:
+        return min(x for x in revs if x > t) - t if _wait(lambda: revs[-1] > t, 5) else None
+
     with tempfile.TemporaryDirectory() as tmp:
         emu = GarbageEmulator(link=Path(tmp) / "rplidar", reset_s=0.1).start()
         revs: list = []
-        drv = RplidarDriver(emu.path, lambda r: revs.append(time.monotonic()), reset_wait_s=c.reset_wait_s,
-                            spinup_s=c.spinup_s, data_timeout_s=c.data_timeout_s, reconnect_s=c.reconnect_s)
+        drv = RplidarDriver(emu.path, lambda r: revs.append(time.monotonic()), **c.driver_timings())
         th = drv.start_thread()
         try:
             if not _wait(lambda: revs, 10):
@@ -289,16 +298,27 @@ def measure_lidar(replugs: int, garbage: int) -> dict:
                 emu.unplug(0.5)
                 _wait(lambda: emu.plug_count > plugs and emu.link.exists(), 5)
                 t_plug = time.monotonic()
-                if _wait(lambda: revs[-1] > t_plug, 5):
-                    out["replug_s"].append(min(t for t in revs if t > t_plug) - t_plug)
+                if (d := first_after(t_plug)) is not None:
+                    out["replug_s"].append(d)
             for _ in range(garbage):
                 _wait(lambda: revs[-1] > time.monotonic() - 0.3, 8)
                 restarts = drv.stats.restarts
                 emu.garbage_only = True
                 t0 = time.monotonic()
-                if _wait(lambda: drv.stats.restarts > restarts, 5):
-                    out["garbage_reset_s"].append(time.monotonic() - t0)
-                emu.garbage_only = False
+                reset = _wait(lambda: drv.stats.restarts > restarts, 5)
+                emu.garbage_only = False  # the fault ends at the reset
+                t_end = time.monotonic()
+                if reset:
+                    out["garbage_reset_s"].append(t_end - t0)
+                    if (d := first_after(t_end)) is not None:
+                        out["garbage_recover_s"].append(d)
+            for _ in range(garbage):
+                _wait(lambda: revs[-1] > time.monotonic() - 0.3, 8)
+                emu.set_health(rp.HEALTH_ERROR, 0x8003)  # stops the scan, like a protection stop
+                time.sleep(0.5)
+                emu.set_health(rp.HEALTH_OK)
+                if (d := first_after(time.monotonic())) is not None:
+                    out["health_recover_s"].append(d)
         finally:
             drv.stop_event.set()
             th.join(3)
@@ -378,8 +398,10 @@ SUBSCRIBERS = {
     "safety": [keys.SCAN, keys.CMD, keys.STATE],
     "sim": [keys.CMD, keys.TELEOP, keys.SAFETY, keys.DRIVE_ROS, keys.ESTOP, "safety/verdict"],
     "router": [keys.ESTOP],
+    "ros2": [keys.SCAN, keys.STATE, keys.CMD, "ros2:/drive"],
 }
-"""Input keys of each service (their setup()); the fuzz's expected counts come from this."""
+"""Input keys of each service (their setup(); ``ros2:/drive``: the mirror's ROS 2 /drive input,
+AckermannDriveStamped CDR on its rmw_zenoh key); the fuzz's expected counts come from this."""
 
 
 def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None) -> dict:
@@ -389,6 +411,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
 
     from racecav.common import fuzz
     from racecav.common.client import live_services
+    from racecav.common.config import load_config
     from racecav.services.actuator.emulator import VescEmulator
 
     rng = np.random.default_rng(seed)
@@ -405,21 +428,29 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
                                              "RACECAV_SIM__WAIT_FOR_CONTROLLER": "false",
                                              "RACECAV_ACTUATOR__STATE_DIR": str(tmp / "state")})
         started = {"actuator": ["actuator", "--port", vesc.path], "policy": ["policy"], "baseline": ["baseline"],
-                   "safety": ["safety"], "sim": ["sim"]}
+                   "safety": ["safety"], "sim": ["sim"], "ros2": ["ros2"]}
         for name, args in started.items():
             p = procs.start(args, env, tmp / f"{name}.log")
             stack.callback(procs.stop, p)
             procs.wait_alive(session, CAR, name, timeout=90, proc=p)
+        # the mirror declares its ROS /drive subscriber in setup(), after its liveliness token
+        if not _wait(lambda: "/drive" in _status(session, "ros2").info.get("keys", {}), 30, 0.2):
+            raise RuntimeError("racecav ros2 has no /drive input")
+        drive_key = _status(session, "ros2").info["keys"]["/drive"]
+        max_drive = load_config().ros2.max_payload_bytes
+        inputs = {leaf: (keys.topic(CAR, leaf), lambda leaf=leaf: fuzz.random_payload(leaf, rng),
+                         lambda p, leaf=leaf: fuzz.expected_invalid(leaf, p)) for leaf in fuzz.INPUTS}
+        inputs[fuzz.DRIVE_IN] = (drive_key, lambda: fuzz.random_drive_payload(rng, max_drive),
+                                 lambda p: fuzz.drive_invalid(p, max_drive))
 
         def send(n: int, count: bool) -> None:
-            for leaf in fuzz.INPUTS:
-                key = keys.topic(CAR, leaf)
+            for leaf, (key, make, is_invalid) in inputs.items():
                 for _ in range(n):
-                    payload = fuzz.random_payload(leaf, rng)
+                    payload = make()
                     session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
                     if count:
                         sent[leaf] += 1
-                        invalid[leaf] += fuzz.expected_invalid(leaf, payload)
+                        invalid[leaf] += is_invalid(payload)
                     if progress is not None:
                         progress.update(1)
                     time.sleep(0.0002)
@@ -447,7 +478,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
                 "errors": st.errors - before[name].errors,
                 "rss_before_mb": round(rss0[name] / 1024, 1), "rss_mid_mb": round(rss_mid[name] / 1024, 1),
                 "rss_after_mb": round(_rss_kb(st.pid) / 1024, 1)}
-    return {"per_key": per_key, "keys": len(fuzz.INPUTS), "sent_by_key": dict(sent),
+    return {"per_key": per_key, "keys": len(inputs), "sent_by_key": dict(sent),
             "invalid_by_key": dict(invalid), "seconds": round(elapsed, 1), "services": rows}
 
 
@@ -469,6 +500,8 @@ def _ms(s: dict, key: str = "median") -> str:
 
 def run(args: argparse.Namespace, cfg=None) -> int:
     from tqdm import tqdm
+
+    from racecav.common import fuzz
 
     res: dict = {}
     steps = ["kill -> brake", "timeout only", "soak", "e-stop", "lidar", "router", "fuzz"]
@@ -492,7 +525,7 @@ def run(args: argparse.Namespace, cfg=None) -> int:
         res["router_restart_s"] = {str(o): measure_router_restart([o] * args.restarts) for o in (0.5, 2.0)}
         bar.update(1)
         bar.set_postfix_str(steps[6])
-        with tqdm(total=(args.fuzz_per_key + 300) * 9, desc="fuzz payloads", leave=False) as fbar:
+        with tqdm(total=(args.fuzz_per_key + 300) * (len(fuzz.INPUTS) + 1), desc="fuzz payloads", leave=False) as fbar:
             res["fuzz"] = fuzz_services(args.fuzz_per_key, progress=fbar) if args.fuzz_per_key > 0 else {}
         bar.update(1)
     command = "racecav bench faults" + (" " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "")
@@ -515,6 +548,7 @@ def report(res: dict, command: str) -> str:
     el = summarize(est["latency_s"])
     lid = res["lidar"]
     rp, gr = summarize(lid["replug_s"]), summarize(lid["garbage_reset_s"])
+    gv, hv = summarize(lid.get("garbage_recover_s", [])), summarize(lid.get("health_recover_s", []))
     soak = res["soak"]
     rows = [
         ["controller kill -9 -> brake at the VESC (liveliness)", f"{kb['n']} kills",
@@ -536,6 +570,10 @@ def report(res: dict, command: str) -> str:
          f"median {_ms(rp)} ms, max {_ms(rp, 'max')} ms", "<= 1 s"],
         [f"lidar garbage-only stream -> reset (data_timeout_s {lid['data_timeout_s']})", f"{gr['n']} runs",
          f"median {_ms(gr)} ms, max {_ms(gr, 'max')} ms", "the data timeout (+ one read)"],
+        ["lidar garbage ends (at the reset) -> first scan (emulator: 0.1 s boot)", f"{gv['n']} runs",
+         f"median {_ms(gv)} ms, max {_ms(gv, 'max')} ms", "<= 1.5 s"],
+        [f"lidar 0.5 s health error ends -> first scan (silence_timeout_s {lid.get('silence_timeout_s')})",
+         f"{hv['n']} runs", f"median {_ms(hv)} ms, max {_ms(hv, 'max')} ms", "<= 1.5 s"],
     ]
     for outage, delays in res["router_restart_s"].items():
         s = summarize(delays)
@@ -547,7 +585,8 @@ def report(res: dict, command: str) -> str:
         frows = [[n, "yes" if r["alive"] else "**no**", r["sent"], r["received"], r["expected_invalid"], r["invalid"],
                   r["errors"], f"{r['rss_before_mb']} -> {r['rss_mid_mb']} -> {r['rss_after_mb']}"]
                  for n, r in fz["services"].items()]
-        fuzz_md = (f"{fz['per_key']:,} payloads on each of the {fz['keys']} input keys "
+        fuzz_md = (f"{fz['per_key']:,} payloads on each of the {fz['keys']} input keys (the racecav keys and "
+                   f"`racecav ros2`'s ROS 2 /drive, AckermannDriveStamped CDR up to 4x ros2.max_payload_bytes) "
                    f"({sum(fz['sent_by_key'].values()):,} in {fz['seconds']} s, after a warm-up), "
                    f"{sum(fz['invalid_by_key'].values()):,} of them invalid by the codec's own judgement:\n\n"
                    + table(frows, ["service", "alive", "sent to its keys", "received", "invalid expected",
@@ -600,10 +639,20 @@ the next frame is the brake. `actuator.timeout_s` (0.25 s, 2.5 periods of the 10
 rate) stays the backstop for a controller that is alive but silent. The simulator applies the
 same rule to the controller whose command is in force.
 
-**Lidar recovery.** A re-opened port (a replug) skips the RESET and its 2 s wait (the device has
-just powered up): STOP, 50 ms, flush, handshake; if that fails, the next attempt resets. The
-port is polled every `sensor.reconnect_s` = 0.1 s. A stream that keeps sending bytes of which
-nothing decodes counts as no data: the device is reset after `sensor.data_timeout_s`.
+**Lidar recovery.** A re-opened port (a replug) skips the RESET (the device has just powered
+up): STOP, 50 ms, flush, handshake; if that fails, the next attempt resets. The port is polled
+every `sensor.reconnect_s` = 0.1 s. A stream that keeps sending bytes of which nothing decodes
+counts as no data: the device is reset after `sensor.data_timeout_s`. A device that goes silent
+(a health error stops its scan) is asked its health and reset after `sensor.silence_timeout_s`
+(0.3 s). After RESET the driver waits `sensor.reset_wait_s` = 2 ms, what Slamtec's "RPLIDAR
+Interface Protocol and Application Notes" documents ("Core Reset (RESET) Request", Fig. 4-3: wait
+at least 2 ms before sending another request), then sends GET_INFO every `sensor.reset_poll_s`
+(50 ms) until the rebooted core answers (at most `sensor.reset_timeout_s`, 2 s), instead of a
+fixed 2 s. The times above are on the emulator, which boots in 0.1 s; a real S2 adds its own
+boot time (about 2 s) to the recovery after a reset, not to a replug.
+
+**ROS 2 input.** The mirror's `/drive` refuses a payload over `ros2.max_payload_bytes` (1024)
+before parsing it and counts it as invalid, like CDR its converter rejects.
 
 **Router restart.** Clients retry the router every `bus.reconnect_initial_s` (0.1 s) growing
 1.5x up to `bus.reconnect_max_s` (0.25 s) instead of zenoh's 1 s to 4 s.
@@ -635,7 +684,8 @@ nice -n 10 .venv/bin/pytest tests/test_bus_codec.py tests/test_hardening_*.py -q
 - test_hardening_failsafe: e-stop across kill -9 and restart, exact `clear`, e-stop while the
   actuator is down, kill -9 of the controller -> brake (median <= 50 ms over 3 kills), the
   simulator's same rule, a missing serial port in `last_error`, sim-scan answers refused;
-- test_hardening_sensor: replug -> first scan with the shipped timings, garbage-only -> reset;
+- test_hardening_sensor: replug -> first scan with the shipped timings, garbage-only -> reset,
+  scans within 1.5 s of the end of garbage and of a health error;
 - test_hardening_access: every account against the access table of docs/deploy.md;
 - test_hardening_procs: bad set-ups exit 2 with one line, benches and the demo killed mid-run
   (SIGTERM, SIGINT) leave no process, a failing command stops its router, the emulator's

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import struct
 import time
 from collections import Counter
@@ -45,9 +44,7 @@ WARMUP = 40
 # round. So the check is on the smallest growth over the rounds.
 ROUND_GROWTH_KB = 8_000
 
-DRIVE_IN = "ros2:/drive"
-"""Pseudo-leaf of the ROS /drive input of ``racecav ros2``: AckermannDriveStamped CDR on the ROS 2
-data key the mirror subscribes to (its status names the key), not a racecav key."""
+DRIVE_IN = fuzz.DRIVE_IN
 
 # who subscribes to which input key (the services' setup(); baseline: ego_state auto reads state;
 # record: racecav/<car>/**, every racecav key)
@@ -69,69 +66,33 @@ message the mirror failed to convert, which it counts as invalid."""
 RAW = {"record"}
 """Stores the raw bytes: ``invalid`` counts only failed writes (none allowed) and refused rotates."""
 
-F32_EXTREMES = [math.nan, math.inf, -math.inf, 3.4028235e38, -3.4028235e38, 1e-45, -0.0, 1e38, -1e38]
-
-
-@functools.lru_cache(maxsize=1)
-def _converter():
-    from racecav.common.config import load_config
-    from racecav.common.vehicle import load_car
-    from racecav.services.ros2.msgs import Converter
-
-    return Converter(load_car(load_config().ros2.car))
-
-
-def drive_cdr(steer: float, speed: float, stamp_ns: int, frame: str = "base_link") -> bytes:
-    """A valid ackermann_msgs/msg/AckermannDriveStamped (CDR), as a ROS node sends on /drive."""
-    from racecav.services.ros2 import msgs
-
-    ts = msgs.typestore()
-    drive = ts.types[msgs.ACKERMANN](steering_angle=steer, steering_angle_velocity=0.0, speed=speed,
-                                     acceleration=0.0, jerk=0.0)
-    msg = ts.types[msgs.ACKERMANN_STAMPED](header=msgs._header(stamp_ns, frame), drive=drive)
-    return bytes(ts.serialize_cdr(msg, msgs.ACKERMANN_STAMPED))
-
-
-def _flip(raw: bytes, bits: list[int]) -> bytes:
-    b = bytearray(raw)
-    for x in bits:
-        b[(x >> 3) % len(b)] ^= 1 << (x & 7)
-    return bytes(b)
-
-
-def _set_float(raw: bytes, i: int, value: float | int) -> bytes:
-    """Field ``i`` of the five float32 of AckermannDrive (the last 20 bytes: 4-aligned, last)
-    set to ``value`` (an int: raw bits)."""
-    off = len(raw) - 20 + 4 * i
-    packed = struct.pack("<I", value) if isinstance(value, int) else struct.pack("<f", value)
-    return raw[:off] + packed + raw[off + 4:]
+MAX_DRIVE_BYTES = 1024
+"""ros2.max_payload_bytes (default): a larger /drive payload is refused and counted as invalid."""
 
 
 def drive_strategy():
     """Hostile payloads for the ROS /drive key: random bytes, valid CDR, truncated and bit-flipped
     CDR, extreme float32 values and bit patterns in the drive fields, a forged frame_id length,
-    racecav msgpack on the ROS key."""
+    racecav msgpack on the ROS key, valid CDR over the size limit."""
     st = hst
-    valid = st.builds(drive_cdr, steer=st.floats(-1.0, 1.0, width=32), speed=st.floats(-20.0, 20.0, width=32),
+    valid = st.builds(fuzz.drive_cdr, steer=st.floats(-1.0, 1.0, width=32), speed=st.floats(-20.0, 20.0, width=32),
                       stamp_ns=st.integers(0, 2**31 * 10**9 - 1), frame=st.text(max_size=40))
     return st.one_of(
         st.binary(max_size=300), valid,
         st.tuples(valid, st.integers(0, 10**6)).map(lambda t: t[0][:t[1] % (len(t[0]) + 1)]),
-        st.tuples(valid, st.lists(st.integers(0, 2**20), min_size=1, max_size=3)).map(lambda t: _flip(*t)),
-        st.tuples(valid, st.integers(0, 4), st.one_of(st.sampled_from(F32_EXTREMES), st.integers(0, 2**32 - 1)))
-        .map(lambda t: _set_float(*t)),
+        st.tuples(valid, st.lists(st.integers(0, 2**20), min_size=1, max_size=3)).map(lambda t: fuzz.flip_bits(*t)),
+        st.tuples(valid, st.integers(0, 4), st.one_of(st.sampled_from(fuzz.F32_EXTREMES), st.integers(0, 2**32 - 1)))
+        .map(lambda t: fuzz.set_drive_float(*t)),
         st.tuples(valid, st.integers(0, 2**32 - 1)).map(lambda t: t[0][:12] + struct.pack("<I", t[1]) + t[0][16:]),
         st.integers(0, 2**32 - 1).map(lambda s: fuzz.random_payload(keys.DRIVE_ROS, np.random.default_rng(s))),
+        st.integers(MAX_DRIVE_BYTES, 3 * MAX_DRIVE_BYTES).map(lambda n: fuzz.drive_cdr(0.0, 1.0, 1, "x" * n)),
     )
 
 
 def drive_invalid(payload: bytes) -> bool:
-    """True if the mirror must refuse ``payload`` on /drive (its converter raises ValueError)."""
-    try:
-        _converter().command_from_drive(payload, 0)
-    except ValueError:
-        return True
-    return False
+    """True if the mirror must refuse ``payload`` on /drive (over the size limit, or its converter
+    raises ValueError)."""
+    return fuzz.drive_invalid(payload, MAX_DRIVE_BYTES)
 
 
 def rotate_bad(tmp_path) -> list[bytes]:

@@ -171,8 +171,14 @@ class Ros2Service(Service):
     def _on_drive(self, sample) -> None:
         self.received += 1
         topic = self.rcfg.drive_in_topic
+        data = sample.payload.to_bytes()
+        if len(data) > self.rcfg.max_payload_bytes:  # refused before rosbags parses it
+            self.invalid += 1
+            self._record_error(f"invalid {topic}: payload of {len(data)} bytes exceeds "
+                               f"ros2.max_payload_bytes ({self.rcfg.max_payload_bytes})")
+            return
         try:
-            cmd = self.conv.command_from_drive(sample.payload.to_bytes(), self.counts[topic],
+            cmd = self.conv.command_from_drive(data, self.counts[topic],
                                                getattr(self.cfg.actuator, "ros_source", "ros"))
         except ValueError as e:
             self.invalid += 1

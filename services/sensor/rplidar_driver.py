@@ -1,14 +1,19 @@
 """RPLIDAR S2 driver over pyserial: start-up handshake, scan loop, recovery. Never exits on its own.
 
-Start-up follows the Slamtec SDK: RESET, wait and flush (the firmware prints a banner), GET_INFO,
-GET_HEALTH (an error state gets one more RESET), GET_LIDAR_CONF for the mode count, the typical
+Start-up follows the Slamtec SDK: RESET, wait what the protocol documents (2 ms: Slamtec's
+"RPLIDAR Interface Protocol and Application Notes", section "Core Reset (RESET) Request",
+Fig. 4-3: "host systems should wait for at least 2 milliseconds (ms) before sending another
+request"), then GET_INFO every ``reset_poll_s`` until the rebooted core answers (at most
+``reset_timeout_s``; requests sent while it boots are dropped, and the banner it prints is
+skipped), GET_HEALTH (an error state gets one more RESET), GET_LIDAR_CONF for the mode count, the typical
 mode and the chosen mode's answer type and sample period, motor speed (A8), a pause for the
 motor to spin up, then SCAN (answer type 81) or EXPRESS_SCAN with the mode id (82/85).
 
-Recovery: no decodable scan data for ``data_timeout_s`` (silence, or a stream of garbage) or a
-health error => RESET and start again on the same port; the port failing (USB unplugged: reads
+Recovery: a stream of bytes none of which decode for ``data_timeout_s``, no bytes at all for
+``silence_timeout_s`` (a stopped device: protection stop, health error), or a health error =>
+RESET and start again on the same port; the port failing (USB unplugged: reads
 raise, the device node disappears) => close, and retry opening every ``reconnect_s`` until it is
-back. A re-opened port (not the first start) skips the RESET and its ~2 s wait (a re-plugged
+back. A re-opened port (not the first start) skips the RESET and its boot (a re-plugged
 device has just powered up and is idle): STOP, a short settle, flush, then the handshake; if the device does not
 answer properly, the next attempt does the full RESET. That is what brings the first scan within
 ~1 s of a replug (measured: docs/reliability.md). Statistics are counted, never raised.
@@ -71,22 +76,28 @@ class RplidarDriver:
     :param scan_mode: mode id, or None for the device's typical mode (DenseBoost on the S2).
     :param motor_rpm: motor speed sent with A8 (600 rpm = 10 Hz); 0 = do not send A8.
     :param cut_deg: device angle where revolutions are cut (see :class:`rp.RevolutionAssembler`).
-    :param reset_wait_s: pause after RESET before talking to the device (the SDK uses ~2 s).
+    :param reset_wait_s: pause after RESET before the first GET_INFO (Slamtec's protocol: >= 2 ms).
+    :param reset_poll_s: period of GET_INFO while the device boots after RESET.
+    :param reset_timeout_s: give up on a device that does not answer GET_INFO for this long.
     :param spinup_s: pause between motor start and SCAN (some S2 firmware needs it).
-    :param data_timeout_s: no decoded samples for this long => reset and restart the scan.
+    :param data_timeout_s: bytes but no decoded samples for this long => reset and restart the scan.
+    :param silence_timeout_s: no bytes at all for this long while scanning => ask the health, reset.
     :param reconnect_s: delay between attempts to reopen a vanished port.
     :param reply_timeout_s: how long to wait for a response descriptor.
     """
 
     def __init__(self, port: str, on_revolution: Callable[[rp.Revolution], None], baudrate: int = 1_000_000,
                  scan_mode: int | None = None, motor_rpm: int = 600, cut_deg: float = 0.0,
-                 reset_wait_s: float = 2.0, spinup_s: float = 0.5, data_timeout_s: float = 1.0,
+                 reset_wait_s: float = 0.002, spinup_s: float = 0.5, data_timeout_s: float = 1.0,
                  reconnect_s: float = 0.1, reply_timeout_s: float = 1.0,
-                 stop_event: threading.Event | None = None):
+                 stop_event: threading.Event | None = None, reset_poll_s: float = 0.05,
+                 reset_timeout_s: float = 2.0, silence_timeout_s: float = 0.3):
         self.port, self.on_revolution, self.baudrate = port, on_revolution, baudrate
         self.scan_mode, self.motor_rpm, self.cut_deg = scan_mode, motor_rpm, cut_deg
         self.reset_wait_s, self.spinup_s, self.data_timeout_s = reset_wait_s, spinup_s, data_timeout_s
         self.reconnect_s, self.reply_timeout_s = reconnect_s, reply_timeout_s
+        self.reset_poll_s, self.reset_timeout_s = reset_poll_s, reset_timeout_s
+        self.silence_timeout_s = silence_timeout_s
         self.stop_event = stop_event or threading.Event()
         self.stats = DriverStats()
         self.state = "idle"
@@ -101,6 +112,7 @@ class RplidarDriver:
         self._ser: serial.Serial | None = None
         self._fresh = False
         """The port was just opened: try the handshake without a RESET first."""
+        self._just_reset = False
 
     # --- public ----------------------------------------------------------------------------
 
@@ -207,6 +219,10 @@ class RplidarDriver:
             return b""
         deadline = time.monotonic() + self.reply_timeout_s
         desc = self._read_descriptor(deadline)
+        if desc.dtype == rp.ANS_INFO and dtype != rp.ANS_INFO:
+            # a late answer to an earlier GET_INFO of the boot poll (_reset): skip it
+            self._read_exact(desc.length, deadline)
+            desc = self._read_descriptor(deadline)
         if desc.dtype != dtype:
             raise DeviceError(f"request {req[:2].hex()}: answer type {desc.dtype:#x}, expected {dtype:#x}")
         return self._read_exact(desc.length, deadline)
@@ -215,11 +231,26 @@ class RplidarDriver:
         return rp.parse_conf_answer(conf_type, self._command(rp.conf_request(conf_type, mode), rp.ANS_CONF))
 
     def _reset(self) -> None:
+        """RESET, then GET_INFO until the rebooted core answers (sets ``info``). The protocol's
+        wait after RESET is 2 ms (module docstring); how long the core then boots is the
+        device's (the S2: about 2 s; the emulator: ``--reset-s``), so it is polled, not assumed."""
         self._ser.write(rp.request(rp.CMD_STOP))
         self._ser.write(rp.request(rp.CMD_RESET))
         if self.stop_event.wait(self.reset_wait_s):
             return
-        self._ser.reset_input_buffer()  # the boot banner and any scan data still in flight
+        deadline = time.monotonic() + self.reset_timeout_s
+        while not self.stop_event.is_set():
+            self._ser.reset_input_buffer()  # scan data still in flight, the boot banner
+            self._ser.write(rp.request(rp.CMD_GET_INFO))
+            try:
+                desc = self._read_descriptor(min(deadline, time.monotonic() + self.reset_poll_s))
+                if desc.dtype == rp.ANS_INFO:
+                    self.info = rp.DeviceInfo.parse(self._read_exact(desc.length, time.monotonic() + self.reply_timeout_s))
+                    return
+            except DeviceError:  # still booting: no answer within the poll period
+                pass
+            if time.monotonic() >= deadline:
+                raise DeviceError(f"no answer to GET_INFO within {self.reset_timeout_s:.1f} s of RESET")
 
     # --- one session: handshake then scan until an error -------------------------------------
 
@@ -234,9 +265,13 @@ class RplidarDriver:
         else:
             self._set_state("resetting")
             self._reset()
+            self._just_reset = True
         if self.stop_event.is_set():
             return
-        self.info = rp.DeviceInfo.parse(self._command(rp.request(rp.CMD_GET_INFO), rp.ANS_INFO))
+        if self._just_reset:  # _reset's poll has the info already
+            self._just_reset = False
+        else:
+            self.info = rp.DeviceInfo.parse(self._command(rp.request(rp.CMD_GET_INFO), rp.ANS_INFO))
         self.health = rp.Health.parse(self._command(rp.request(rp.CMD_GET_HEALTH), rp.ANS_HEALTH))
         if self.health.status == rp.HEALTH_ERROR:
             raise DeviceError(f"health error code {self.health.error_code:#06x}")
@@ -304,11 +339,12 @@ class RplidarDriver:
                         except Exception as e:  # a consumer bug must not kill the driver
                             self.stats.last_error = f"on_revolution: {e}"
                             log.exception("on_revolution failed")
-            elif now - last_data > self.data_timeout_s:
+            elif now - last_data > self.silence_timeout_s:
                 # Silence: the device stopped (protection stop, brown-out). Ask why, then reset.
+                # A scanning S2 sends ~67 kB/s without a pause: 0.3 s of nothing is no hiccup.
                 try:
                     self.health = rp.Health.parse(self._command(rp.request(rp.CMD_GET_HEALTH), rp.ANS_HEALTH))
                     why = f"health {self.health.status} code {self.health.error_code:#06x}"
                 except DeviceError as e:
                     why = str(e)
-                raise DeviceError(f"no scan data for {self.data_timeout_s:.1f} s ({why})")
+                raise DeviceError(f"no scan data for {self.silence_timeout_s:.1f} s ({why})")

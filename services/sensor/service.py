@@ -45,8 +45,7 @@ class SensorService(Service):
         self._driver = RplidarDriver(
             self.port, self._on_revolution, baudrate=self.scfg.baudrate, scan_mode=self.scfg.scan_mode,
             motor_rpm=self.scfg.motor_rpm, cut_deg=cut_angle_deg(self.spec, self.mount_yaw),
-            reset_wait_s=self.scfg.reset_wait_s, spinup_s=self.scfg.spinup_s,
-            data_timeout_s=self.scfg.data_timeout_s, reconnect_s=self.scfg.reconnect_s)
+            **self.scfg.driver_timings())
         self._thread = self._driver.start_thread()
 
     def _on_revolution(self, rev) -> None:
