@@ -21,7 +21,7 @@ from racecav.common.codec import encode  # noqa: E402
 from racecav.common.messages import DriveCommand, Obstacle, ObstacleStates, Scan, VehicleState  # noqa: E402
 
 CHANNELS = {"/scan": "foxglove.LaserScan", "/tf": "foxglove.FrameTransforms", "/cars": "foxglove.SceneUpdate",
-            "/walls": "foxglove.SceneUpdate", "/cmd": None, "/latency": None}
+            "/walls": "foxglove.SceneUpdate", "/cmd": "racecav.DriveCommand", "/latency": "racecav.Latency"}
 
 
 def _varint(b: bytes, i: int) -> tuple[int, int]:
@@ -82,7 +82,8 @@ def test_viz_serves_every_channel(spawn, session, tmp_path):
         assert set(channels) == set(CHANNELS)
         for topic, schema in CHANNELS.items():
             c = channels[topic]
-            assert c["encoding"] == ("protobuf" if schema else "json") and (schema is None or c["schemaName"] == schema)
+            assert c["encoding"] == ("json" if schema.startswith("racecav.") else "protobuf"), c
+            assert c["schemaName"] == schema, c  # JSON ones named too, not generated
         subs = {i: topic for i, topic in enumerate(CHANNELS)}
         ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()]}))
@@ -133,5 +134,5 @@ def test_viz_serves_every_channel(spawn, session, tmp_path):
     from mcap.reader import make_reader
 
     with open(mcap_path, "rb") as fh:
-        topics = {c.topic for c in make_reader(fh).get_summary().channels.values()}
-    assert topics == set(CHANNELS)
+        summary = make_reader(fh).get_summary()
+    assert {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()} == CHANNELS

@@ -8,8 +8,8 @@ Open Foxglove, "Open connection" -> ``ws://HOST:8765`` (Foxglove WebSocket). Cha
 | /tf          | foxglove.FrameTransforms  | state + car file      | odom -> base_link (pose), base_link -> laser (mount) |
 | /cars        | foxglove.SceneUpdate      | state + obstacles     | the ego and the obstacle cars as boxes in ``odom`` |
 | /walls       | foxglove.SceneUpdate      | the world file        | wall segments as lines in ``odom`` (re-sent every 2 s) |
-| /cmd         | JSON                      | racecav/<car>/cmd     | a_throttle, a_steer, throttle, steering_angle, source |
-| /latency     | JSON                      | scan + cmd arrivals   | scan -> command ms on this host's clock, controller compute ms |
+| /cmd         | JSON racecav.DriveCommand | racecav/<car>/cmd     | a_throttle, a_steer, throttle, steering_angle, source |
+| /latency     | JSON racecav.Latency      | scan + cmd arrivals   | scan -> command ms on this host's clock, controller compute ms |
 
 ``--mcap PATH`` also writes every channel to an MCAP file (Foxglove opens it). Logging happens in
 the subscriber callbacks: building and logging a 170-ray LaserScan took 6 us (median, no viewer
@@ -50,6 +50,16 @@ def _ts(ns: int):
     from foxglove.messages import Timestamp
 
     return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+
+
+def _json_schema(name: str, properties: dict):
+    """A named JSON schema (a dict would get a generated name in the file and the viewer)."""
+    import json
+
+    import foxglove
+
+    return foxglove.Schema(name=name, encoding="jsonschema",
+                           data=json.dumps({"title": name, "type": "object", "properties": properties}).encode())
 
 
 def _quat(yaw: float):
@@ -99,11 +109,11 @@ class Viz(Service):
         self.ch_cars = SceneUpdateChannel("/cars")
         self.ch_walls = SceneUpdateChannel("/walls")
         num = {"type": "number"}
-        self.ch_cmd = foxglove.Channel("/cmd", schema={"type": "object", "properties": {
-            "a_throttle": num, "a_steer": num, "throttle": num, "steering_angle": num,
-            "source": {"type": "string"}, "scan_seq": num}})
-        self.ch_latency = foxglove.Channel("/latency", schema={"type": "object", "properties": {
-            "scan_to_cmd_ms": num, "compute_ms": num}})
+        self.ch_cmd = foxglove.Channel("/cmd", message_encoding="json", schema=_json_schema(
+            "racecav.DriveCommand", {"a_throttle": num, "a_steer": num, "throttle": num, "steering_angle": num,
+                                     "source": {"type": "string"}, "scan_seq": num}))
+        self.ch_latency = foxglove.Channel("/latency", message_encoding="json", schema=_json_schema(
+            "racecav.Latency", {"scan_to_cmd_ms": num, "compute_ms": num}))
         self._walls = None
         if self.world_name:
             from racecav.common.world import load_world
