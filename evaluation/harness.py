@@ -204,7 +204,8 @@ class Harness:
     :param log_dir: where the processes' logs go.
     :param real_time_factor: realtime mode: sim seconds per wall second.
     :param record_dir: if set, a ``racecav record`` process writes one MCAP file per trial there
-        (``<scenario>-<index>-seed<seed>.mcap``; what came before the first trial: setup.mcap).
+        (``<scenario>-<index>-seed<seed>.mcap``, cut at each episode's first stamp; what came
+        before the first trial, if anything: setup.mcap).
     :param safety: also run ``racecav safety`` (the emergency-brake supervisor; in lockstep the
         sim waits for its verdict on every scan, so its brakes are deterministic too).
     :param compute_charge: lockstep: "fixed" (default) charges every command the controller's
@@ -317,12 +318,13 @@ class Harness:
         self._check_procs()
         wall0 = time.monotonic()
         try:
-            if self.record_dir is not None:  # this trial's samples go to their own file
+            if self.record_dir is not None:  # this trial's samples go to their own file: the
+                # recorder holds what comes from here on and cuts at the episode's first stamp
                 name = f"{Path(self.scenario_ref).stem}-{index:03d}-seed{seed}.mcap"
                 for attempt in range(50):  # alive (token) comes a moment before its queryables
                     try:
                         query_message(self.session, self.car_name, "record", "rotate",
-                                      {"path": str(self.record_dir / name)}, timeout=10.0)
+                                      {"path": name, "hold": True}, timeout=10.0)
                         break
                     except RuntimeError:
                         if attempt == 49:
@@ -334,6 +336,9 @@ class Harness:
                 self._need_scenario = False
             else:
                 rep = query_message(self.session, self.car_name, "sim", "reset", {"seed": seed}, timeout=15.0)
+            if self.record_dir is not None:
+                query_message(self.session, self.car_name, "record", "release", {"stamp_ns": rep["stamp_ns"]},
+                              timeout=10.0)
         except RuntimeError as e:
             self._check_procs()
             raise HarnessError(f"trial {index}: {e}") from None

@@ -22,6 +22,7 @@ import json
 import struct
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,13 +98,19 @@ def drive_invalid(payload: bytes) -> bool:
 
 def rotate_bad(tmp_path) -> list[bytes]:
     """Bad payloads of the recorder's rotate query: each must be refused with an error reply,
-    recording going on in the current file. Paths only under tmp_path."""
+    recording going on in the current file. The recorder writes into tmp_path (its -o folder):
+    names that are absolute, climb out with '..', or go through a symlink leading out are
+    refused, as are names that cannot be written."""
     (tmp_path / "a-file").write_bytes(b"")
-    paths = ["", str(tmp_path), str(tmp_path / "a-file" / "x.mcap"), str(tmp_path / ("x" * 300 + ".mcap")),
-             str(tmp_path / "nul\x00.mcap"), str(tmp_path / "run.mcap")]
+    outside = tmp_path.parent / f"{tmp_path.name}-outside"
+    outside.mkdir(exist_ok=True)
+    (tmp_path / "out-link").symlink_to(outside, target_is_directory=True)
+    (tmp_path / "file-link.mcap").symlink_to(outside / "x.mcap")
+    paths = ["", str(tmp_path / "x.mcap"), "/etc/x.mcap", "../x.mcap", "sub/../../x.mcap", "out-link/x.mcap",
+             "file-link.mcap", ".", "a-file/x.mcap", "x" * 300 + ".mcap", "nul\x00.mcap", "run.mcap"]
     objs = [{"path": p} for p in paths] + [
         {}, {"path": None}, {"path": 3}, {"path": ["x.mcap"]}, {"path": {"p": 1}}, {"nope": "x.mcap"},
-        [], ["x.mcap"], "x.mcap", 1, 1e308, None, True]
+        {"path": "y.mcap", "hold": "yes"}, [], ["x.mcap"], "x.mcap", 1, 1e308, None, True]
     return [json.dumps(o).encode() for o in objs] + fuzz.BAD_QUERY_BYTES + [b"", b"\xff" * 10]
 
 
@@ -211,6 +218,12 @@ def test_hostile_payloads_on_every_key_and_query(services, session, tmp_path):
         reply = error_reply(session, rotate_key, raw)  # refused as a bad payload (ValueError), not a crash
         assert reply.startswith("rotate: "), (raw[:100], reply)
         bad_rotates += 1
+    outside = tmp_path.parent / f"{tmp_path.name}-outside"
+    assert not any(outside.iterdir())  # nothing created through the symlinks
+    for name, rule in [("/etc/x.mcap", "absolute paths are refused"), ("../x.mcap", "'..' is refused"),
+                       ("out-link/x.mcap", "through a symlink"), ("file-link.mcap", "is a symlink")]:
+        assert rule in error_reply(session, rotate_key, json.dumps({"path": name}).encode())
+        bad_rotates += 1
     for name in SUBSCRIBERS:  # status and values ignore their payload: garbage is harmless
         query(session, keys.status_key(CAR, name), b"\xff garbage", timeout=5)
     query(session, keys.service_key(CAR, "actuator", "values"), b"\x00" * 1000, timeout=5)
@@ -292,7 +305,7 @@ def test_hostile_payloads_on_every_key_and_query(services, session, tmp_path):
         from racecav.services.ros2.rmw import attachment
 
         for k in range(3):
-            session.put(drive_key, drive_cdr(0.1, 1.0, time.time_ns()), attachment=attachment(k + 1, time.time_ns(),
+            session.put(drive_key, fuzz.drive_cdr(0.1, 1.0, time.time_ns()), attachment=attachment(k + 1, time.time_ns(),
                                                                                               bytes(16)))
             time.sleep(0.05)
         assert wait_until(lambda: len(got) >= 3, timeout=10), got
@@ -318,13 +331,13 @@ def test_hostile_payloads_on_every_key_and_query(services, session, tmp_path):
     from racecav.services.record.mcapfile import read_raw
 
     first, second = tmp_path / "run.mcap", tmp_path / "after.mcap"
-    assert json.loads(query(session, rotate_key, json.dumps({"path": str(second)}).encode(), timeout=10)) == {
-        "file": str(second)}
+    reply = json.loads(query(session, rotate_key, json.dumps({"path": "after.mcap"}).encode(), timeout=10))
+    assert Path(reply["file"]).resolve() == second.resolve()
     marker = keys.topic(CAR, "fuzz/marker")
     session.put(marker, b"after the rotate")
     assert wait_until(lambda: get_status(session, CAR, "record").info["messages"].get(marker) == 1, timeout=20)
     rec = get_status(session, CAR, "record")
-    assert rec.errors == 0 and rec.info["file"] == str(second), (rec.last_error, rec.info)
+    assert rec.errors == 0 and Path(rec.info["file"]).resolve() == second.resolve(), (rec.last_error, rec.info)
     assert procs.stop(procs_["record"]) == 0
     recorded: Counter = Counter()
     for path in (first, second):

@@ -19,7 +19,7 @@ from racecav.common import keys, procs  # noqa: E402
 from racecav.common.client import get_status  # noqa: E402
 from racecav.common.codec import decode, encode  # noqa: E402
 from racecav.common.messages import DriveCommand, Scan, VehicleState  # noqa: E402
-from racecav.services.record.mcapfile import RAW_ENCODING, RunFileError, RunWriter, read_raw  # noqa: E402
+from racecav.services.record.mcapfile import RAW_SCHEMA, RunFileError, RunWriter, read_raw  # noqa: E402
 from racecav.services.record.replay import load_run  # noqa: E402
 from tests.test_controllers_policy import random_policy_file  # noqa: E402
 
@@ -75,15 +75,33 @@ def test_run_file_layout_is_read_by_ros_tools(tmp_path):
         assert reader.get_header().profile == "ros2"
         summary = reader.get_summary()
         chans = {c.topic: c for c in summary.channels.values()}
-        assert chans["racecav/car0/scan"].message_encoding == RAW_ENCODING
-        # rosbag2's MCAP storage throws on a channel without a schema record (`ros2 bag info`)
-        assert all(c.schema_id in summary.schemas for c in chans.values())
-        assert chans["/scan"].message_encoding == "cdr" and "offered_qos_profiles" in chans["/scan"].metadata
-        assert {summary.schemas[c.schema_id].encoding for t, c in chans.items() if t.startswith("/")} == {"ros2msg"}
+        # every channel is CDR with its ros2msg schema in the file: nothing Foxglove or rosbag2
+        # cannot decode (no custom encoding, no schema-less channel)
+        assert {c.message_encoding for c in chans.values()} == {"cdr"}
+        assert {summary.schemas[c.schema_id].encoding for c in chans.values()} == {"ros2msg"}
+        assert summary.schemas[chans["racecav/car0/scan"].schema_id].name == RAW_SCHEMA
+        assert "offered_qos_profiles" in chans["/scan"].metadata
         decoded = {}
-        for _s, ch, _m, msg in reader.iter_decoded_messages(topics=["/scan", "/odom", "/drive"]):
-            decoded.setdefault(ch.topic, []).append(msg)
+        for _s, ch, m, msg in reader.iter_decoded_messages():
+            decoded.setdefault(ch.topic, []).append((m.log_time, msg))
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    raw_scan = decoded["racecav/car0/scan"][0][1]
+    assert bytes(raw_scan.payload) == sent[0][1]  # the raw sample, byte for byte, by its schema alone
+    # the frame tree: base_link -> laser from the car file's mount, once, at the first message;
+    # odom -> base_link at every state's pose and stamp
+    from racecav.common.vehicle import load_car
+
+    (t_static, tf_static), = decoded["/tf_static"]
+    mount = load_car("slash").lidar_mount
+    tr = tf_static.transforms[0]
+    assert (tr.header.frame_id, tr.child_frame_id) == ("base_link", "laser") and t_static == 1_000_000_000
+    assert (tr.transform.translation.x, tr.transform.translation.z) == (mount.x, mount.z)
+    tfs = [m.transforms[0] for _t, m in decoded["/tf"]]
+    assert [(t.header.frame_id, t.child_frame_id, t.transform.translation.x, t.header.stamp.nanosec)
+            for t in tfs] == [("odom", "base_link", float(i), i) for i in range(3)]
+    # header stamps are the messages' own stamps
+    assert [m.header.stamp.nanosec for _t, m in decoded["/scan"]] == [_scan(i).stamp_ns for i in range(3)]
+    decoded = {t: [m for _t, m in v] for t, v in decoded.items()}
     assert meta["racecav"]["car"] == "car0"
     assert len(decoded["/scan"]) == 3  # the garbage scan got no copy
     assert np.array_equal(np.asarray(decoded["/scan"][1].ranges, np.float32), _scan(1).ranges)
@@ -101,6 +119,9 @@ def test_run_file_layout_is_read_by_ros_tools(tmp_path):
         assert conns["/scan"].msgtype == "sensor_msgs/msg/LaserScan" and conns["/scan"].msgcount == 3
         _c, _t, data = next(iter(r.messages(connections=[conns["/odom"]])))
         assert r.deserialize(data, "nav_msgs/msg/Odometry").twist.twist.linear.x == 1.0
+        assert conns["racecav/car0/estop"].msgtype == RAW_SCHEMA  # rosbags reads the raw channels too
+        _c, _t, data = next(iter(r.messages(connections=[conns["racecav/car0/estop"]])))
+        assert bytes(r.deserialize(data, RAW_SCHEMA).payload) == b"stop"
 
 
 def _replay(env, *args) -> subprocess.CompletedProcess:
@@ -179,29 +200,60 @@ def test_lockstep_run_replays_with_identical_commands(spawn, session, router, tm
     assert r.returncode == 1 and rep2["identical"] < rep2["compared"] and rep2["a_steer_max_abs_diff"] > 0.001
 
 
-def test_eval_record_writes_one_file_per_trial(tmp_path):
-    """`racecav eval --record DIR`: one run file per trial holding exactly that trial's scans and
-    commands (the recorder switches files between trials)."""
+def test_eval_record_cuts_each_lockstep_trial_exactly(tmp_path):
+    """`racecav eval --record DIR` (lockstep): one run file per trial, cut at the episode
+    boundary by stamp. Read with an MCAP reader: every channel decodes (no encoding Foxglove
+    flags), /tf_static and /tf are there, log times span the trial's sim duration, and the
+    scans, states, obstacle states and commands of each trial are exactly its own: all of
+    them, and none of another trial. No empty setup.mcap."""
     import json
+
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from racecav.common.messages import ObstacleStates
 
     out, rec_dir = tmp_path / "eval", tmp_path / "mcap"
     r = subprocess.run(procs.racecav_cmd("eval", "--scenario", "head-to-head", "--controller", "drl-reversed",
-                                         "--trials", "2", "--record", str(rec_dir), "--out-dir", str(out),
-                                         "--no-progress"), capture_output=True, text=True, timeout=300)
+                                         "--mode", "lockstep", "--trials", "3", "--record", str(rec_dir),
+                                         "--out-dir", str(out), "--no-progress"),
+                       capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stdout + r.stderr
     trials = [json.loads(line)["trial"] for line in (out / "head-to-head-drl-reversed.jsonl").read_text().splitlines()]
-    assert len(trials) == 2
-    for t in trials:
-        _car, scans, recorded = load_run(rec_dir / f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap")
-        # the trial's scans (load_run drops republished repeats), and the commands answering
-        # them. The recorder switches files on a query before each trial, so a file also holds
-        # what is on the bus around that switch: samples in flight, and the steps the lockstep sim
-        # and the policy go on with between the trial's end and the next switch (seen: 1-4 on
-        # fresh clones). Slack: 3 samples missing at the start, 10 extra.
-        seqs = [s.seq for s in scans]
-        assert t["steps"] - 3 <= len(seqs) <= t["steps"] + 10
-        assert all(min(seqs) - 3 <= seq <= max(seqs) for seq, _stamp in recorded)
-        assert t["commands"] - 3 <= len(recorded) <= t["commands"] + 10
+    names = [f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap" for t in trials]
+    assert len(trials) == 3 and sorted(p.name for p in rec_dir.iterdir()) == sorted(names)  # no setup.mcap
+    seen: dict[str, set] = {"state": set(), "scan": set(), "obstacles": set(), "cmd": set()}
+    for t, name in zip(trials, names):
+        path = rec_dir / name
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            summary = reader.get_summary()
+            chans = summary.channels.values()
+            assert {c.message_encoding for c in chans} == {"cdr"}, name
+            assert {summary.schemas[c.schema_id].encoding for c in chans} == {"ros2msg"}, name
+            topics = {c.topic for c in chans}
+            assert {"/tf_static", "/tf", "/scan", "/odom", "/drive"} <= topics, topics
+            assert sum(1 for _ in reader.iter_decoded_messages()) == summary.statistics.message_count
+        by: dict[str, list] = {k: [] for k in seen}
+        for smp in read_raw(path):
+            leaf = smp.key.rsplit("/", 1)[-1]
+            cls = {"state": VehicleState, "scan": Scan, "obstacles": ObstacleStates, "cmd": DriveCommand}.get(leaf)
+            if cls is not None:
+                msg = decode(smp.payload, cls)
+                assert smp.log_time_ns == msg.stamp_ns  # logged at its own (sim) stamp
+                by[leaf].append(msg)
+        seqs = {k: {m.scan_seq if k == "cmd" else m.seq for m in v} for k, v in by.items()}
+        first = min(seqs["state"])
+        trial = set(range(first, first + t["steps"]))
+        # exactly the trial's steps (republished scans repeat a seq), the same for scans and obstacles
+        assert seqs["state"] == seqs["scan"] == seqs["obstacles"] == trial, (name, len(seqs["state"]), t["steps"])
+        # lockstep: every scan but the last was answered, the last one may be; nothing else
+        assert set(range(first, first + t["steps"] - 1)) <= seqs["cmd"] <= trial, name
+        for k in seen:
+            assert not seen[k] & seqs[k], f"{name}: {k} also in another trial's file"
+            seen[k] |= seqs[k]
+        stamps = [s.stamp_ns for s in by["scan"]]
+        assert (max(stamps) - min(stamps)) * 1e-9 == pytest.approx(t["end_time_s"], abs=1e-6)
 
 
 def test_real_sensor_scans_are_restamped(spawn, session, router, tmp_path):

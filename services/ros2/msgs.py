@@ -34,6 +34,7 @@ LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
 ACKERMANN_STAMPED = "ackermann_msgs/msg/AckermannDriveStamped"
 ACKERMANN = "ackermann_msgs/msg/AckermannDrive"
+TF = "tf2_msgs/msg/TFMessage"
 TYPES = (LASER_SCAN, ODOMETRY, ACKERMANN_STAMPED)
 
 HASH_UNSUPPORTED = "TypeHashNotSupported"
@@ -139,6 +140,25 @@ class Converter:
             pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=self._cov),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=self._cov))
         return bytes(self._ts.serialize_cdr(msg, ODOMETRY))
+
+    def _transform(self, parent: str, child: str, x: float, y: float, z: float, yaw: float, stamp_ns: int):
+        T = self._T
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=_header(stamp_ns, parent), child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z)),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))))
+
+    def tf(self, state: VehicleState, stamp_ns: int) -> bytes:
+        """tf2_msgs/msg/TFMessage CDR: odom -> base_link at the state's pose (REP-105)."""
+        t = self._transform(state.frame_id, self.base_frame, state.x, state.y, 0.0, state.yaw, stamp_ns)
+        return bytes(self._ts.serialize_cdr(self._T[TF](transforms=[t]), TF))
+
+    def tf_static(self, stamp_ns: int, laser_frame: str = "laser") -> bytes:
+        """tf2_msgs/msg/TFMessage CDR: base_link -> laser, the car file's lidar mount."""
+        m = self.car.lidar_mount
+        t = self._transform(self.base_frame, laser_frame, m.x, m.y, m.z, m.yaw, stamp_ns)
+        return bytes(self._ts.serialize_cdr(self._T[TF](transforms=[t]), TF))
 
     def speed(self, throttle: float) -> float:
         """Steady forward speed (m/s) of throttle T: the meaning of T on the car."""

@@ -250,8 +250,10 @@ class SimService(Service):
                     self.scenario_ref = data["name"]
                 self._new_episode(data.get("seed", self.next_seed), data.get("heading"))
                 self._publish()
+                # seq and stamp of the episode's first sample (a recorder cuts its files there)
                 box["reply"] = {"episode": self.episode, "seed": self.seed,
-                                "scenario": self.world.scenario.name, "seq": self.seq - 1}
+                                "scenario": self.world.scenario.name, "seq": self.seq - 1,
+                                "stamp_ns": self._stamp()}
                 changed = True
             except Exception as e:  # reply with the error, keep running
                 box["error"] = f"{kind}: {e}"
