@@ -1,18 +1,20 @@
 """``racecav bench controllers``: the paper's Table 2 (computation cost) on this machine.
 
-For the DRL policy and the MPC-APF baseline:
+For the DRL policy (``--model``, the shipped default avoid unless named) and the MPC-APF baseline:
 
-- FLOPs per control step: the MLP counted as the paper does (2 x parameters - 2 = 30,466 for
-  170-64-64-2); the MPC by casadi's instruction counts times the solver's calls (see
+- FLOPs per control step: the MLP counted as the paper does (2 x parameters - 2: 30,466 for the
+  paper's 170-64-64-2, 51,970 for avoid's 338-64-64-2); the MPC by casadi's instruction counts times the solver's calls (see
   :meth:`racecav.services.baseline.mpc.MpcApf.flops` and docs/controllers.md), over closed-loop
   steps;
-- in-process latency: the policy from scan ranges to action as the service runs it (sanitise +
-  normalise + MLP in one compiled kernel, services/policy/fused.py), beside the plain-numpy
-  reference path and its MLP alone; the baseline's whole step (ego estimate, perception, MPC) on the steps of
+- in-process latency: the policy from the published (wide) scan to action as the service runs it
+  (its own view out of the scan, its scan stack, sanitise + normalise + MLP in one compiled
+  kernel, services/policy/fused.py), beside the plain-numpy reference path and its MLP alone;
+  every shipped policy the same way, each in its own view and stack; the baseline's whole step (ego estimate, perception, MPC) on the steps of
   closed-loop PyBullet episodes (head-to-head, right-to-left, left-to-right, driven by the
   baseline itself);
 - end-to-end over Zenoh: a Scan published (with the VehicleState before it, as the sim does)
-  through a router -> the controller process -> its DriveCommand received back, per scan.
+  through a router -> the controller process -> its DriveCommand received back, per scan (the
+  policy gets wide scans, as the sim and the sensor publish them; the baseline its own lidar's).
 
 The machine's load average is printed with the numbers: the reference machine is shared.
 """
@@ -36,29 +38,12 @@ SCENARIOS = ("head-to-head", *(s for s in registry.PAPER_SCENARIOS if s != "head
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", default=None, help="policy (default: the first shipped of reversed, default, "
-                   "racing; random weights of the right shape if none is shipped)")
+    p.add_argument("--model", default=None, help="policy: a shipped name or a .npz (default: policy.model, "
+                   "the shipped avoid)")
     p.add_argument("--reps", type=int, default=3000, help="in-process policy repetitions")
     p.add_argument("--seeds", type=int, default=2, help="closed-loop episodes per scenario for the baseline")
     p.add_argument("--e2e-scans", type=int, default=300, help="scans per controller end to end")
     p.add_argument("--rate-hz", type=float, default=50.0, help="scan rate end to end")
-
-
-def _policy_path(model: str | None, tmp: Path) -> tuple[str, str]:
-    from racecav.common.policy import SHIPPED, resolve_policy_path
-
-    if model:
-        return model, model
-    for name in ("reversed", "default", "racing"):
-        if name in SHIPPED and resolve_policy_path(name).is_file():
-            return name, name
-    rng = np.random.default_rng(0)  # same shape as a shipped policy: same FLOPs and time
-    arrays = {"w0": rng.normal(0, 0.1, (170, 64)), "b0": np.zeros(64), "w1": rng.normal(0, 0.1, (64, 64)),
-              "b1": np.zeros(64), "w2": rng.normal(0, 0.1, (64, 2)), "b2": np.zeros(2),
-              "obs_mean": np.full(170, 3.0), "obs_var": np.full(170, 4.0)}
-    path = tmp / "random.npz"
-    np.savez(path, **{k: v.astype(np.float32) for k, v in arrays.items()})
-    return str(path), "random weights (no shipped policy yet)"
 
 
 def closed_loop(cfg, seeds: int):
@@ -101,27 +86,66 @@ def closed_loop(cfg, seeds: int):
     return np.array(steps, dtype=float), msgs, outcomes
 
 
-def policy_in_process(pol, msgs, reps: int):
-    """Seconds per scan: the service's fused kernel, the numpy reference path, its MLP alone."""
-    from racecav.common.lidar import LidarSpec, sanitize
-    from racecav.services.policy.fused import FusedPolicy
+def wide_episodes() -> list:
+    """(state, scan) of the paper's three scenarios with the published wide scan
+    (common/lidar.WIDE_SCAN, what the sim and the sensor publish by default), the ego rolling
+    straight from its 1 m/s start: every policy takes its own view out of these."""
+    from racecav.common.lidar import WIDE_SCAN, make_scan
+    from racecav.common.messages import VehicleState
+    from racecav.sim.bullet_world import BulletWorld
 
-    fused_pol = FusedPolicy(pol, LidarSpec())
-    scans = [m[1].ranges for m in msgs] or [np.full(170, 5.0, np.float32)]
-    fused, full, mlp = [], [], []
+    msgs = []
+    for scen in SCENARIOS:
+        with BulletWorld(scen, lidar=WIDE_SCAN) as w:
+            w.reset(seed=0)
+            for k in range(int(round(w.scenario.duration_s / w.car.control_period_s))):
+                x, y, yaw, vx = w.agent_state()[0]
+                stamp = int(round(w.t * 1e9))
+                msgs.append((VehicleState(stamp_ns=stamp, seq=k, source="sim", x=x, y=y, yaw=yaw, vx=vx),
+                             make_scan(w.scan_ranges, stamp, k, "sim", w.spec)))
+                w.step(np.array([[0.0, 0.0]], np.float32))
+                if w.collided:
+                    break
+    return msgs
+
+
+def _service(cfg, model: str, pol, backend: str = "fused"):
+    """The policy service's act path without a bus (its view, its stack, the backend)."""
+    from racecav.services.policy.service import PolicyService
+
+    pcfg = cfg.policy.model_copy(update={"model": model, "backend": backend})
+    return PolicyService(cfg.model_copy(update={"policy": pcfg}), policy=pol)
+
+
+def _act_times(svc, scans, reps: int) -> np.ndarray:
+    """Seconds per ``svc.act`` over ``reps`` scans, re-stamped as one continuous run (one step
+    apart, consecutive seqs: a stacked policy's stack never restarts)."""
+    dt = []
     for i in range(reps):
-        r = scans[i % len(scans)]
+        scan = scans[i % len(scans)].model_copy(update={"seq": i, "stamp_ns": (i + 1) * 100_000_000})
+        if not svc.check(scan, time.monotonic_ns()):
+            raise RuntimeError(f"{svc.model_ref}: the wide scan was refused: {svc.counts}")
         t0 = time.perf_counter_ns()
-        fused_pol(r)
-        fused.append(time.perf_counter_ns() - t0)
-        t0 = time.perf_counter_ns()
-        pol(sanitize(r))
-        full.append(time.perf_counter_ns() - t0)
-        obs = sanitize(r)
+        svc.act(scan)
+        dt.append(time.perf_counter_ns() - t0)
+    return np.array(dt) * 1e-9
+
+
+def policy_in_process(cfg, model: str, pol, scans, reps: int):
+    """Seconds per scan: the service's path with the fused kernel, with the numpy reference
+    (sanitise + NumpyPolicy), and the MLP alone on the policy's (stacked) observation."""
+    fused = _act_times(_service(cfg, model, pol, "fused"), scans, reps)
+    ref = _service(cfg, model, pol, "numpy")
+    full = _act_times(ref, scans, reps)
+    from racecav.common.lidar import sanitize
+
+    obs = sanitize(ref.stack.current() if ref.stack.n > 1 else ref.view(scans[0]), ref.spec)
+    mlp = []
+    for _ in range(reps):
         t0 = time.perf_counter_ns()
         pol(obs)
         mlp.append(time.perf_counter_ns() - t0)
-    return np.array(fused) * 1e-9, np.array(full) * 1e-9, np.array(mlp) * 1e-9
+    return fused, full, np.array(mlp) * 1e-9
 
 
 def end_to_end(args_cmd: list[str], msgs, n: int, rate_hz: float, endpoint: str, log: Path,
@@ -198,41 +222,18 @@ def end_to_end(args_cmd: list[str], msgs, n: int, rate_hz: float, endpoint: str,
     return np.array(lat), lost
 
 
-def shipped_in_service(cfg, reps: int) -> dict[str, dict]:
+def shipped_in_service(cfg, scans, reps: int) -> dict[str, dict]:
     """Seconds per scan of each shipped policy's service act path (its view out of the published
-    wide scan, its scan stack, the fused kernel: what ``compute_ns`` covers), on wide scans of the
-    paper's three scenarios (the ego rolling straight). The service is built without a bus."""
-    from racecav.common.lidar import WIDE_SCAN, make_scan
+    wide scan, its scan stack, the fused kernel: what ``compute_ns`` covers)."""
     from racecav.common.policy import MODELS_DIR, SHIPPED, load_policy
-    from racecav.services.policy.service import PolicyService
-    from racecav.sim.bullet_world import BulletWorld
 
-    scans = []
-    for scen in SCENARIOS:
-        with BulletWorld(scen, lidar=WIDE_SCAN) as w:
-            w.reset(seed=0)
-            for k in range(int(round(w.scenario.duration_s / w.car.control_period_s))):
-                scans.append(make_scan(w.scan_ranges, int(round(w.t * 1e9)), k, "sim", w.spec))
-                w.step(np.array([[0.0, 0.0]], np.float32))
-                if w.collided:
-                    break
     out = {}
     for name in SHIPPED:
         if not (MODELS_DIR / f"{name}.npz").is_file():
             continue
         pol = load_policy(name)
-        pcfg = cfg.policy.model_copy(update={"model": name, "backend": "fused"})
-        svc = PolicyService(cfg.model_copy(update={"policy": pcfg}), policy=pol)
-        dt = []
-        for i in range(reps):
-            scan = scans[i % len(scans)]
-            if not svc.check(scan, time.monotonic_ns()):
-                raise RuntimeError(f"{name}: the wide scan was refused: {svc.counts}")
-            t0 = time.perf_counter_ns()
-            svc.act(scan)
-            dt.append(time.perf_counter_ns() - t0)
         out[name] = {"inputs": pol.obs_dim, "lidar": pol.metadata.get("lidar", "paper"), "stack": pol.obs_stack,
-                     "flops": 2 * pol.n_params - 2, "dt": np.array(dt) * 1e-9}
+                     "flops": 2 * pol.n_params - 2, "dt": _act_times(_service(cfg, name, pol), scans, reps)}
     return out
 
 
@@ -242,17 +243,20 @@ def run(args: argparse.Namespace, cfg) -> int:
     from racecav.common.policy import load_policy
 
     tmp = Path(tempfile.mkdtemp(prefix="racecav-bench-"))
-    model_ref, model_desc = _policy_path(args.model, tmp)
+    model_ref = args.model or cfg.policy.model
     pol = load_policy(model_ref)
+    view, stack = pol.metadata.get("lidar", "paper"), pol.obs_stack
+    model_desc = f"{model_ref} ({view} view, {pol.lidar.n_rays} rays x {stack} scan{'s' if stack > 1 else ''})"
     load0 = os.getloadavg()
 
     steps, msgs, outcomes = closed_loop(cfg, args.seeds)
-    fused, full, mlp = policy_in_process(pol, msgs, args.reps)
-    shipped = shipped_in_service(cfg, args.reps)
+    wide = wide_episodes()
+    fused, full, mlp = policy_in_process(cfg, model_ref, pol, [m[1] for m in wide], args.reps)
+    shipped = shipped_in_service(cfg, [m[1] for m in wide], args.reps)
     with procs.router(log_path=tmp / "router.log") as endpoint:
-        pol_e2e, pol_lost = end_to_end(["policy", "--model", model_ref], msgs, args.e2e_scans, args.rate_hz,
+        pol_e2e, pol_lost = end_to_end(["policy", "--model", model_ref], wide, args.e2e_scans, args.rate_hz,
                                        endpoint, tmp / "policy.log")
-        peer_e2e, peer_lost = end_to_end(["policy", "--model", model_ref], msgs, args.e2e_scans,
+        peer_e2e, peer_lost = end_to_end(["policy", "--model", model_ref], wide, args.e2e_scans,
                                          args.rate_hz, endpoint, tmp / "policy-peer.log", mode="peer")
         base_e2e, base_lost = end_to_end(["baseline"], msgs, args.e2e_scans, args.rate_hz, endpoint,
                                          tmp / "baseline.log")
@@ -281,7 +285,7 @@ def run(args: argparse.Namespace, cfg) -> int:
         return f"{d[k]:.3f}" if d.get("n") else "n/a"
 
     rows = [
-        ["DRL policy (MLP 170-64-64-2)", f"{mlp_flops:,}", f"{ms(p['in_process_ms'])} / {ms(p['in_process_ms'], 'p99')}",
+        [f"DRL policy {model_ref} (MLP {pol.obs_dim}-64-64-2)", f"{mlp_flops:,}", f"{ms(p['in_process_ms'])} / {ms(p['in_process_ms'], 'p99')}",
          f"{ms(p['numpy_ms'])} / {ms(p['numpy_ms'], 'p99')}", f"{ms(p['e2e_ms'])} / {ms(p['e2e_ms'], 'p99')}",
          "30,466", "0.206"],
         ["DRL policy, bus in peer mode", "", "", "", f"{ms(p['e2e_peer_ms'])} / {ms(p['e2e_peer_ms'], 'p99')}",
@@ -310,9 +314,11 @@ def run(args: argparse.Namespace, cfg) -> int:
         f"MPC-APF / MLP on this machine: {ratio_f:.0f}x the FLOPs, {ratio_t:.0f}x the in-process time "
         f"(paper: 31x, 64x).", "",
         targets, "",
-        f"Policy: {model_desc}; in-process = sanitise + normalise + MLP on recorded scans ({args.reps} reps) "
-        f"in the service's compiled kernel; numpy reference = the same in plain numpy (its MLP alone: "
-        f"{ms(p['mlp_only_ms'])} ms). "
+        f"Policy: {model_desc}; in-process = the service's act path on {args.reps} wide scans of the three "
+        f"scenarios (its view out of the published scan, its scan stack, sanitise + normalise + MLP in the "
+        f"compiled kernel); numpy reference = the same path in plain numpy (its MLP alone: "
+        f"{ms(p['mlp_only_ms'])} ms); end to end it gets the same wide scans. Paper columns: the paper's "
+        f"170-64-64-2 MLP. "
         f"MPC-APF: {b['steps']} closed-loop steps of {len(outcomes)} PyBullet episodes "
         f"({', '.join(SCENARIOS)}; the baseline driving, lidar perception, state key for ego state); "
         f"in-process = the whole step (ego estimate, perception, MPC; derivative functions compiled to C: "
