@@ -240,3 +240,24 @@ def test_peer_mode_links_policy_and_sim_directly(tmp_path):
     finally:
         procs.stop(ctl)
         procs.stop(router)
+
+
+def test_bench_controllers_takes_each_shipped_policy_in_its_own_view():
+    """`racecav bench controllers` feeds every policy the published wide scan and times the
+    service's act path, each in its own view and stack (it once fed 170-ray scans to the 338-ray
+    avoid policy and ended in a traceback)."""
+    from racecav.common.config import load_config
+    from racecav.common.lidar import WIDE_SCAN, make_scan
+    from racecav.common.policy import MODELS_DIR, SHIPPED, load_policy
+    from racecav.services.bench_controllers import policy_in_process, shipped_in_service
+
+    cfg = load_config(environ={})
+    scans = [make_scan(np.linspace(0.5, 9.0, WIDE_SCAN.n_rays, dtype=np.float32), (k + 1) * 10**8, k, "sim",
+                       WIDE_SCAN) for k in range(4)]
+    out = shipped_in_service(cfg, scans, reps=6)
+    assert set(out) == {n for n in SHIPPED if (MODELS_DIR / f"{n}.npz").is_file()} and "avoid" in out
+    assert (out["avoid"]["lidar"], out["avoid"]["stack"], out["avoid"]["inputs"]) == ("wide", 2, 338)
+    assert all(len(d["dt"]) == 6 for d in out.values())
+    assert cfg.policy.model == "avoid"  # what the bench measures by default
+    fused, full, mlp = policy_in_process(cfg, "avoid", load_policy("avoid"), scans, 6)
+    assert len(fused) == len(full) == len(mlp) == 6
