@@ -767,13 +767,72 @@ def load_config(path: str | Path | None = None, environ: dict[str, str] | None =
             raise ConfigError(f"config file {path}: {e.strerror or e}") from None
         except tomllib.TOMLDecodeError as e:
             raise ConfigError(f"config file {path}: invalid TOML: {e}") from None
-    data = _merge(data, _env_overrides(environ))
+    env = _env_overrides(environ)
+    data = _merge(data, env)
     try:
         return Config.model_validate(data)
     except ValidationError as e:
-        lines = []
-        for err in e.errors():
-            field = ".".join(str(p) for p in err["loc"])
-            lines.append(f"  {field}: {err['msg']} (got {err.get('input')!r})")
-        src = f"config file {path}" if path else "configuration"
-        raise ConfigError(f"{src} is invalid:\n" + "\n".join(lines)) from None
+        def source(loc: tuple) -> str:  # the variable that set the field, else the file
+            node = env
+            for part in loc:
+                if not isinstance(node, dict) or str(part) not in node:
+                    break
+                node = node[str(part)]
+            else:
+                if isinstance(node, dict):  # a whole section's rule: no single variable set it
+                    return f"{f'config file {path}' if path else 'configuration'}: {'.'.join(map(str, loc))}"
+                return f"{ENV_PREFIX}{'__'.join(str(p).upper() for p in loc)} ({'.'.join(map(str, loc))})"
+            return f"{f'config file {path}' if path else 'configuration'}: {'.'.join(map(str, loc))}"
+
+        raise ConfigError(errors_line(e, source)) from None
+
+
+def errors_line(e: ValidationError, name=lambda loc: ".".join(map(str, loc))) -> str:
+    """A pydantic error as one line: ``<name(loc)>: <rule> (got <value>)`` per error, joined by
+    "; " (no URL, no "Value error," prefix, no line breaks)."""
+    parts = []
+    for err in e.errors():
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        value = err.get("input")
+        got = repr(value)
+        got = "" if isinstance(value, dict) and err["type"] == "value_error" else (  # a whole section
+            f" (got {got if len(got) <= 60 else got[:57] + '...'})")
+        parts.append(f"{name(tuple(err['loc']))}: {msg}{got}")
+    return "; ".join(parts).replace("\n", " ")
+
+
+def override(cfg: Config, section: str, values: dict[str, Any], flags: dict[str, str] | None = None) -> Config:
+    """``cfg`` with command-line ``values`` (field -> value) applied to ``cfg.<section>``, validated.
+
+    :param flags: field -> the option that set it, for the message.
+    :raises ConfigError: one line naming the option and the field, e.g. ``--v-ref
+        (baseline.v_ref): Input should be greater than or equal to 0 (got -1.0)``.
+    """
+    if not values:
+        return cfg
+    sec = getattr(cfg, section)
+    flags = flags or {}
+
+    def name(loc: tuple) -> str:
+        field = ".".join(map(str, (section, *loc)))
+        flag = flags.get(str(loc[0])) if loc else None
+        return f"{flag} ({field})" if flag else field
+
+    try:
+        new = type(sec).model_validate({**sec.model_dump(), **values})
+    except ValidationError as e:
+        raise ConfigError(errors_line(e, name)) from None
+    return cfg.model_copy(update={section: new})
+
+
+def apply_options(cfg: Config, section: str, args, options: dict[str, str],
+                  extra: dict[str, Any] | None = None) -> Config:
+    """``cfg`` with a command's typed options applied to ``cfg.<section>`` (:func:`override`).
+
+    :param options: option dest -> field (``{"v_ref": "v_ref", "max_scan_age": "max_scan_age_s"}``);
+        the option is ``--`` + dest with '-' for '_'. Options left at None are not applied.
+    :param extra: more field values (from flags without a value, e.g. ``--racetrack``).
+    """
+    values = {f: getattr(args, d) for d, f in options.items() if getattr(args, d, None) is not None}
+    values.update(extra or {})
+    return override(cfg, section, values, {f: "--" + d.replace("_", "-") for d, f in options.items()})

@@ -237,9 +237,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
+    if not args.dry_run:  # before the first "write" line: a bad folder is one line, exit 2
+        try:
+            Path(args.dir).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            print(f"racecav deploy credentials: --dir {args.dir}: cannot create the folder ({e.strerror or e})")
+            return 2
+        if not os.access(args.dir, os.W_OK | os.X_OK):
+            print(f"racecav deploy credentials: --dir {args.dir}: not writable by this user")
+            return 2
     try:
         make_credentials(Path(args.dir), cfg.bus.car, args.tls, args.host, args.force, args.dry_run)
     except (RuntimeError, ValueError, OSError) as e:
         print(f"racecav deploy credentials: {e}")
-        return 1
+        return 2  # a bad set-up (a folder that cannot be written...), like every other
     return 0

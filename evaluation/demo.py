@@ -40,6 +40,11 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
               "`racecav train` (see docs/training.md) and committed to the repository. "
               "Nothing was started.", file=sys.stderr)
         return 1
+    try:  # a folder that cannot be made is a bad set-up: one line, exit 2
+        Path(args.out_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        print(f"racecav demo: --out-dir {args.out_dir}: cannot create the folder ({e.strerror or e})", file=sys.stderr)
+        return 2
     if getattr(args, "config", None):  # the services started below read the same file
         import os
 

@@ -99,6 +99,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, cfg: Config) -> int:
     if getattr(args, "config", None):  # the services the harness starts read the same file
         os.environ["RACECAV_CONFIG"] = str(Path(args.config).resolve())
+    if getattr(args, "out_dir", None) is not None:  # a folder that cannot be made: one line, exit 2
+        try:
+            Path(args.out_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            print(f"racecav eval: --out-dir {args.out_dir}: cannot create the folder ({e.strerror or e})",
+                  file=sys.stderr)
+            return 2
     if args.table:
         if getattr(args, "model", None) is not None:
             print("racecav eval: --model is for single runs (--scenario/--controller), not --table", file=sys.stderr)

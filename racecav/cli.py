@@ -38,8 +38,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "viz": ("racecav.services.viz.service", "live Foxglove view (WebSocket): scan, car and obstacle boxes, walls, commands, latency; --mcap PATH (extra: viz)"),
 }
 
+class Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (the option and the rule, then where help is), exit 2.
+    Subcommand parsers inherit it (argparse makes them of the parent's class)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="racecav", description=__doc__.splitlines()[0])
+    parser = Parser(prog="racecav", description=__doc__.splitlines()[0])
     parser.add_argument("--config", help="TOML config file (default: $RACECAV_CONFIG or built-in defaults)")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -69,6 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(importlib.import_module(args._module).run(args, cfg) or 0)
     except ConfigError as e:  # a bad set-up found while starting (bus, files, ports): one line
         print(f"racecav {args.command}: {e}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as e:
+        if not e.filename:
+            raise
+        # a path the command was given that cannot be used: a bad set-up, one line
+        print(f"racecav {args.command}: {e.filename}: {e.strerror}", file=sys.stderr)
         return 2
 
 

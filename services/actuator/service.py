@@ -289,7 +289,7 @@ def send_neutral(cfg: Config, port: str | None = None) -> int:
             ser.flush()
     except (OSError, serial.SerialException) as e:
         print(f"racecav actuator --neutral: {port}: {e}")
-        return 1
+        return 2  # a bad set-up (no such port), like every other
     return 0
 
 

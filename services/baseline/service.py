@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from racecav.common import keys
-from racecav.common.config import BaselineConfig, Config
+from racecav.common.config import BaselineConfig, Config, apply_options
 from racecav.common.messages import ObstacleStates, Scan, VehicleState
 from racecav.common.vehicle import CarParams, load_car
 from racecav.services.controller import ControllerService
@@ -192,18 +192,15 @@ class BaselineService(ControllerService):
                 **self.ctl.stats()}
 
 
+OPTIONS = {"ego_state": "ego_state", "solver": "solver", "max_scan_age": "max_scan_age_s", "v_ref": "v_ref"}
+"""Typed options -> baseline.<field> (validated as the config is: a bad one exits 2 naming both)."""
+SECTION = "baseline"
+
+
 def run(args: argparse.Namespace, cfg: Config) -> int:
-    upd: dict[str, Any] = {}
-    if getattr(args, "oracle", False):
-        upd["obstacles"] = "oracle"
-    for name, field in (("ego_state", "ego_state"), ("solver", "solver"), ("max_scan_age", "max_scan_age_s"),
-                        ("v_ref", "v_ref")):
-        v = getattr(args, name, None)
-        if v is not None:
-            upd[field] = v
+    cfg = apply_options(cfg, SECTION, args, OPTIONS,
+                        {"obstacles": "oracle"} if getattr(args, "oracle", False) else None)
     try:
-        bcfg = type(cfg.baseline).model_validate({**cfg.baseline.model_dump(), **upd})
-        cfg = cfg.model_copy(update={"baseline": bcfg})
         svc = BaselineService(cfg)
     except ValueError as e:
         print(f"racecav baseline: {e}")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from racecav.common.config import Config
+from racecav.common.config import Config, apply_options
 from racecav.common.lidar import sanitize
 from racecav.common.messages import Scan
 from racecav.common.vehicle import load_car
@@ -96,18 +96,14 @@ class PolicyService(ControllerService):
                 "brake_below": self.policy.brake_below, "lidar": self.policy.metadata.get("lidar", "paper")}
 
 
+OPTIONS = {"model": "model", "max_scan_age": "max_scan_age_s", "backend": "backend", "onnx": "onnx"}
+"""Typed options -> policy.<field> (validated as the config is: a bad one exits 2 naming both)."""
+SECTION = "policy"
+
+
 def run(args: argparse.Namespace, cfg: Config) -> int:
-    upd = {}
-    if getattr(args, "model", None):
-        upd["model"] = args.model
-    if getattr(args, "max_scan_age", None) is not None:
-        upd["max_scan_age_s"] = args.max_scan_age
-    for k in ("backend", "onnx"):
-        if getattr(args, k, None):
-            upd[k] = getattr(args, k)
+    cfg = apply_options(cfg, SECTION, args, OPTIONS)
     try:
-        pcfg = type(cfg.policy).model_validate({**cfg.policy.model_dump(), **upd})
-        cfg = cfg.model_copy(update={"policy": pcfg})
         svc = PolicyService(cfg)
     except ImportError as e:
         print(f"racecav policy: {e} (the onnxruntime backend needs: pip install 'racecav[onnx]')")

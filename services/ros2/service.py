@@ -27,7 +27,7 @@ from typing import Any, Callable
 
 from racecav.common import keys
 from racecav.common.bus import Service, zenoh_config
-from racecav.common.config import Config
+from racecav.common.config import Config, apply_options
 from racecav.common.messages import DriveCommand, Message, Scan, VehicleState
 
 
@@ -207,17 +207,15 @@ class Ros2Service(Service):
         super().close()
 
 
+OPTIONS = {"mode": "mode", "ros_connect": "connect", "domain_id": "domain_id"}
+"""Typed options -> ros2.<field> (validated as the config is: a bad one exits 2 naming both)."""
+SECTION = "ros2"
+
+
 def run(args: argparse.Namespace, cfg: Config) -> int:
-    upd: dict[str, Any] = {}
-    if getattr(args, "mode", None):
-        upd["mode"] = args.mode
-    if getattr(args, "ros_connect", None):
-        upd["connect"] = args.ros_connect
-    if getattr(args, "domain_id", None) is not None:
-        upd["domain_id"] = args.domain_id
+    cfg = apply_options(cfg, SECTION, args, OPTIONS)
     try:
-        rcfg = type(cfg.ros2).model_validate({**cfg.ros2.model_dump(), **upd})
-        svc = Ros2Service(cfg.model_copy(update={"ros2": rcfg}))
+        svc = Ros2Service(cfg)
     except (ImportError, ValueError, FileNotFoundError) as e:
         print(f"racecav ros2: {e}")
         return 2

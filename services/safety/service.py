@@ -28,7 +28,7 @@ import numpy as np
 
 from racecav.common import keys
 from racecav.common.bus import Service
-from racecav.common.config import Config
+from racecav.common.config import Config, apply_options
 from racecav.common.messages import INT64_MAX, DriveCommand, Scan, VehicleState
 from racecav.common.vehicle import load_car
 from racecav.services.baseline.ego import EgoEstimator
@@ -127,13 +127,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ego-state", choices=["auto", "state", "model"], help="ego speed source; default safety.ego_state")
 
 
+OPTIONS = {"threshold": "threshold_s", "debounce": "debounce_scans", "ego_state": "ego_state"}
+"""Typed options -> safety.<field> (validated as the config is: a bad one exits 2 naming both)."""
+SECTION = "safety"
+
+
 def run(args: argparse.Namespace, cfg: Config) -> int:
-    upd = {k: v for k, v in (("threshold_s", args.threshold), ("debounce_scans", args.debounce),
-                             ("ego_state", args.ego_state)) if v is not None}
-    if upd:
-        try:
-            cfg = cfg.model_copy(update={"safety": type(cfg.safety).model_validate({**cfg.safety.model_dump(), **upd})})
-        except Exception as e:
-            print(f"racecav safety: {e}")
-            return 2
-    return SafetyService(cfg).run()
+    return SafetyService(apply_options(cfg, SECTION, args, OPTIONS)).run()

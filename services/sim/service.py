@@ -44,7 +44,7 @@ from typing import Any
 
 from racecav.common import keys
 from racecav.common.bus import Service
-from racecav.common.config import Config, ConfigError
+from racecav.common.config import Config, ConfigError, apply_options
 from racecav.common.lidar import make_scan, published_scan
 from racecav.common.messages import DriveCommand, Obstacle, ObstacleStates, VehicleState
 from racecav.common.scenario import load_scenario, scenario_names
@@ -66,29 +66,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lidar-all", action="store_true", help="cast the lidar for every car")
 
 
+OPTIONS = {"scenario": "scenario", "mode": "mode", "real_time_factor": "real_time_factor", "seed": "seed",
+           "heading": "heading", "on_end": "on_end"}
+"""Typed options -> sim.<field> (validated as the config is: a bad one exits 2 naming both)."""
+SECTION = "sim"
+
+
 def sim_config(args: argparse.Namespace, cfg: Config):
-    """cfg.sim with the command-line overrides applied (validated)."""
-    upd: dict[str, Any] = {}
+    """cfg.sim with the command-line overrides applied (validated; ConfigError naming the option)."""
+    extra: dict[str, Any] = {}
     if getattr(args, "racetrack", False):
-        upd["scenario"] = "racetrack"
-    for name, field in (("scenario", "scenario"), ("mode", "mode"), ("real_time_factor", "real_time_factor"),
-                        ("seed", "seed"), ("heading", "heading"), ("on_end", "on_end")):
-        v = getattr(args, name, None)
-        if v is not None:
-            upd[field] = v
+        extra["scenario"] = "racetrack"
     if getattr(args, "lidar_all", False):
-        upd["lidar_all"] = True
-    try:
-        return type(cfg.sim).model_validate({**cfg.sim.model_dump(), **upd})
-    except Exception as e:
-        raise ConfigError(f"sim: {e}") from None
+        extra["lidar_all"] = True
+    return apply_options(cfg, SECTION, args, OPTIONS, extra).sim
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
+    scfg = sim_config(args, cfg)  # a bad option: ConfigError, one line, exit 2 (racecav.cli)
     try:
-        scfg = sim_config(args, cfg)
-        cfg = cfg.model_copy(update={"sim": scfg})
-        svc = SimService(cfg)
+        svc = SimService(cfg.model_copy(update={"sim": scfg}))
     except (ConfigError, ValueError) as e:
         print(f"racecav sim: {e}")
         return 2

@@ -26,7 +26,7 @@ from typing import Any
 
 from racecav.common import keys
 from racecav.common.bus import Service
-from racecav.common.config import Config
+from racecav.common.config import Config, apply_options
 from racecav.common.messages import DriveCommand, ObstacleStates, Scan, VehicleState
 
 EXAMPLES = """examples:
@@ -222,11 +222,15 @@ class Viz(Service):
                 self._mcap.close()
 
 
+OPTIONS = {"host": "host", "port": "port", "world": "world"}
+"""Typed options -> viz.<field> (validated as the config is: a bad one exits 2 naming both)."""
+SECTION = "viz"
+
+
 def run(args: argparse.Namespace, cfg: Config) -> int:
-    v = cfg.viz
+    v = apply_options(cfg, SECTION, args, OPTIONS).viz
     try:
-        viz = Viz(cfg, args.host or v.host, v.port if args.port is None else args.port, args.mcap,
-                  args.world or v.world)
+        viz = Viz(cfg, v.host, v.port, args.mcap, v.world)
     except (ImportError, ValueError, FileNotFoundError) as e:
         print(f"racecav viz: {e}")
         return 2
