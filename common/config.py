@@ -371,7 +371,7 @@ class EnvConfig(Section):
                 if not eq or not name.strip():
                     raise ValueError(f"curriculum_boost: {part!r} is not FAMILY=FACTOR")
             v = out
-        if isinstance(v, dict) and any(not w > 0 for w in v.values()):
+        if isinstance(v, dict) and any(not isinstance(w, (int, float)) or not w > 0 for w in v.values()):
             raise ValueError(f"curriculum_boost: factors must be > 0 (got {v})")
         return v
 
@@ -779,7 +779,7 @@ def load_config(path: str | Path | None = None, environ: dict[str, str] | None =
                     break
                 node = node[str(part)]
             else:
-                if isinstance(node, dict):  # a whole section's rule: no single variable set it
+                if len(loc) < 2:  # a whole section's rule: no single variable set it
                     return f"{f'config file {path}' if path else 'configuration'}: {'.'.join(map(str, loc))}"
                 return f"{ENV_PREFIX}{'__'.join(str(p).upper() for p in loc)} ({'.'.join(map(str, loc))})"
             return f"{f'config file {path}' if path else 'configuration'}: {'.'.join(map(str, loc))}"
