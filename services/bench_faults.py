@@ -662,14 +662,17 @@ before parsing it and counts it as invalid, like CDR its converter rejects.
 and everything still running is stopped at exit. Bad set-ups (a config that is a directory or
 not UTF-8, an invalid or unreachable `bus.connect`, a router endpoint in use or invalid, a
 missing router config file, an emulator link in a missing directory) exit 2 with one line naming
-the file, endpoint or port.
+the file, endpoint or port. So does every invalid configuration field, from a file or a
+`RACECAV_*` variable, and every invalid option, naming the option and the field it sets and the
+rule: `racecav baseline: --v-ref (baseline.v_ref): Input should be greater than or equal to 0
+(got -1.0)`.
 
 ## Tests
 
 Real processes, a real router, the emulators on ptys (part of `make test`):
 
 ```sh
-nice -n 10 .venv/bin/pytest tests/test_bus_codec.py tests/test_hardening_*.py -q
+nice -n 10 .venv/bin/pytest tests/test_bus_codec.py tests/test_hardening_*.py tests/test_cli_setup.py -q
 ```
 
 - test_bus_codec: every reported killer payload (stamps beyond int64, +-1e308 angles, a 5e-324
@@ -687,6 +690,10 @@ nice -n 10 .venv/bin/pytest tests/test_bus_codec.py tests/test_hardening_*.py -q
 - test_hardening_sensor: replug -> first scan with the shipped timings, garbage-only -> reset,
   scans within 1.5 s of the end of garbage and of a health error;
 - test_hardening_access: every account against the access table of docs/deploy.md;
+- test_cli_setup: every configuration field (through the environment and a TOML file), every
+  typed option of every command, every option that sets a configuration field, bad paths and
+  devices: exit 2 and one line naming the field, option or path (found by walking the
+  configuration model and the argument parsers, in-process);
 - test_hardening_procs: bad set-ups exit 2 with one line, benches and the demo killed mid-run
   (SIGTERM, SIGINT) leave no process, a failing command stops its router, the emulator's
   SIGTERM removes its link, commands flow within 1 s of a router restart.
