@@ -1,7 +1,9 @@
 """``racecav record``: write a run to one MCAP file (raw bus samples + ROS 2 copies).
 
 A separate process subscribed to the car's keys: the control path (scan -> controller -> command)
-never waits for it. Zenoh's callback only appends the sample to a queue; the recorder's own loop
+never waits for it. Each sample is logged at its own stamp (sim time in the simulator). Queries:
+``rotate`` (go on in another file of the same folder; with ``hold``, cut at a stamp ``release``
+names: one file per trial, exactly, for ``racecav eval --record``) and ``release``. Zenoh's callback only appends the sample to a queue; the recorder's own loop
 writes the file (docs/benchmarks.md, record: the controller's latency with and without it).
 The file layout is :mod:`racecav.services.record.mcapfile`.
 """
@@ -30,7 +32,9 @@ EXAMPLES = """examples:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-o", "--output", default="run.mcap", help="output MCAP file (default: run.mcap)")
+    p.add_argument("-o", "--output", default="run.mcap",
+                   help="output MCAP file (default: run.mcap); its folder is the only one the rotate query "
+                        "writes into")
     p.add_argument("--keys", nargs="+", metavar="KEY",
                    help="leaves under racecav/<car>/ (scan cmd state obstacles ...) or full key "
                         "expressions (default: racecav/<car>/**, everything of the car)")
