@@ -227,7 +227,8 @@ def test_sim_obeys_the_same_mux_estop_and_teleop(spawn, session, tmp_path):
     scen.write_text(WALL.replace("duration_s = 4.0", "duration_s = 30.0").replace("yaw_deg = 30.0", "yaw_deg = 0.0"))
     sim = spawn("sim", "--scenario", str(scen), "--mode", "realtime")
     wait_alive(session, "car0", "sim", 60, sim)
-    spawn("scripted", "--program", "0.3,0.0,100000")
+    # driving before the e-stop: a realtime sim waits for the controller (6 s to start at load 15)
+    wait_alive(session, "car0", "scripted", 60, spawn("scripted", "--program", "0.3,0.0,100000"))
 
     def vx() -> float:
         from racecav.common.codec import decode
