@@ -210,6 +210,59 @@ class ActuatorConfig(Section):
         return self
 
 
+class PerturbConfig(Section):
+    """Sim-to-real perturbations (common/perturb.py; presets with their sources in
+    common/data/perturbations.toml and docs/robustness.md). Every default is the ideal world.
+    On the command line and in ``RACECAV_SIM__PERTURB``: a preset name, ``key=value`` pairs, or
+    both (``s2-nominal,latency_s=0.05``)."""
+
+    range_noise_m: float = Field(0.0, ge=0, le=1)
+    """Gaussian range noise: standard deviation (m) independent of the range ..."""
+    range_noise_rel: float = Field(0.0, ge=0, le=0.5)
+    """... and proportional to it (fraction); the two add in quadrature."""
+    dropout: float = Field(0.0, ge=0, le=0.9)
+    """Share of rays that return nothing (the S2 reports distance 0; the sensor service then fills
+    holes up to SensorConfig.max_gap_deg, and so does the sim: services/sensor/preprocess.py)."""
+    mount_yaw_rad: float = Field(0.0, ge=-0.5, le=0.5)
+    """The lidar is mounted turned by this (rad, CCW) while every consumer assumes the car file's."""
+    scan_jitter_s: float = Field(0.0, ge=0, lt=0.1)
+    """Each scan reaches the controller up to this much later (s, uniform; lockstep only)."""
+    latency_s: float = Field(0.0, ge=0, lt=1)
+    """Extra latency between the scan and the command (s): a slower computer (lockstep only)."""
+    actuator_delay_s: float = Field(0.0, ge=0, lt=1)
+    """Delay between the command and the actuators acting on it (s; lockstep only)."""
+    steer_offset_rad: float = Field(0.0, ge=-0.1, le=0.1)
+    """Steering trim error: the wheels point this far (rad, CCW) from the commanded angle."""
+    motor_gain: float = Field(1.0, gt=0, le=2)
+    """The wheel speed reached for a throttle is this times what the controller meant."""
+    friction: float = Field(1.0, gt=0, le=2)
+    """Tyre-floor friction coefficient (1.0: the car file's tyre on a lab floor)."""
+    mass_scale: float = Field(1.0, gt=0, le=3)
+    """The car's mass (and yaw inertia) times this."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _from_text(cls, v):
+        if isinstance(v, str):  # a preset name and/or key=value pairs (common/perturb.py)
+            from racecav.common.perturb import parse_text
+
+            return parse_text(v)
+        return v
+
+    def active(self) -> dict[str, float]:
+        """The fields that differ from the ideal world."""
+        return {k: v for k, v in self.model_dump().items() if v != type(self).model_fields[k].default}
+
+    def timing(self) -> bool:
+        """Perturbs the time a command takes effect (needs a lockstep sim)."""
+        return bool(self.scan_jitter_s or self.latency_s or self.actuator_delay_s)
+
+    def text(self) -> str:
+        """Canonical short text: "nominal", or the active fields as sorted key=value pairs."""
+        act = self.active()
+        return ",".join(f"{k}={v:g}" for k, v in sorted(act.items())) if act else "nominal"
+
+
 class SimConfig(Section):
     """The simulator service (``racecav sim``): PyBullet world playing the car (HIL stand-in)."""
 
@@ -259,6 +312,9 @@ class SimConfig(Section):
     """Lockstep: also wait for the safety supervisor's verdict on each scan before stepping, so
     its brake applies to the scan it answers (set when ``racecav safety`` runs, e.g. ``racecav
     eval --safety on``)."""
+    perturb: PerturbConfig = PerturbConfig()
+    """Sim-to-real perturbations of the agent's lidar, timing and car (``racecav sim --perturb``);
+    the timing ones need mode lockstep (the sim refuses them in realtime)."""
 
 
 class SafetyConfig(Section):
@@ -404,6 +460,9 @@ class EnvConfig(Section):
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The
     shipped policy's metadata carries it, so the policy service brakes the same way."""
+    perturb: PerturbConfig | None = None
+    """Fast backend: train under perturbations drawn per world and episode, each between the
+    ideal value and this one (a preset name or key=value pairs; common/perturb.py). None: off."""
 
 
 class TrainConfig(Section):

@@ -91,6 +91,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="on: also run racecav safety (the emergency-brake supervisor, a brake input of the "
                         "sim's mux); results go to *-safety.json, the controller is named CONTROLLER+safety; "
                         "both (--table only): every cell without and with it, and the on/off table")
+    p.add_argument("--perturb", metavar="PRESET|KEY=VALUE,...",
+                   help="run the sim under sim-to-real perturbations (a preset of common/data/perturbations.toml, "
+                        "key=value pairs of sim.perturb, or both; docs/robustness.md); results are named "
+                        "CONTROLLER@PERTURBATION")
+    p.add_argument("--robust-trials", type=int, default=30,
+                   help="--table --sections robust: trials per scenario cell under each perturbation (default 30)")
+    p.add_argument("--robust-controllers", default="drl-avoid,drl-reversed,mpc-apf",
+                   help="--table --sections robust: the controllers (default drl-avoid,drl-reversed,mpc-apf)")
     p.add_argument("--record", nargs="?", const=True, type=Path, metavar="DIR",
                    help="write one MCAP run file per trial (racecav record; default DIR: "
                         "OUT_DIR/mcap/SCENARIO-CONTROLLER); replay one with racecav replay")

@@ -61,6 +61,13 @@ def _controller(spec: registry.ControllerSpec) -> Controller:
 CONTROLLERS: dict[str, Controller] = {n: _controller(c) for n, c in registry.CONTROLLERS.items()}
 
 
+def perturbed(ctrl: Controller, perturb) -> Controller:
+    """``ctrl`` run under a perturbation (sim.perturb, common/perturb.py): its name, and so its
+    results' run key and files, carry the perturbation's canonical text (NAME@key=value,...)."""
+    text = perturb.text() if perturb is not None else "nominal"
+    return ctrl if text == "nominal" else dataclasses.replace(ctrl, name=f"{ctrl.name}@{text}")
+
+
 def missing(ctrl: Controller) -> str | None:
     """Why ``ctrl`` cannot run here (a missing service module or weights file), or None."""
     if importlib.util.find_spec(ctrl.module) is None:
@@ -211,16 +218,18 @@ class Harness:
     :param compute_charge: lockstep: "fixed" (default) charges every command the controller's
         benchmarked compute time (registry ``charge_ms``), so a trial repeats bit for bit whatever
         the machine's load; "measured" charges each command its own ``compute_ns``.
+    :param perturb: the sim's sim-to-real perturbation (a PerturbConfig; None: cfg.sim.perturb).
     """
 
     def __init__(self, cfg: Config, controller: Controller, mode: str, scenario: str, log_dir: Path,
                  real_time_factor: float = 1.0, record_dir: Path | None = None, safety: bool = False,
-                 compute_charge: str = "fixed"):
+                 compute_charge: str = "fixed", perturb=None):
         if compute_charge not in COMPUTE_CHARGES:
             raise ValueError(f"compute_charge: one of {COMPUTE_CHARGES}, not {compute_charge!r}")
         self.cfg, self.ctrl, self.mode, self.log_dir = cfg, controller, mode, Path(log_dir)
         self.charge_ms = controller.charge_ms if compute_charge == "fixed" and mode == "lockstep" else None
         """The compute time (ms) charged to every command; None: each command's own."""
+        self.perturb = cfg.sim.perturb if perturb is None else perturb
         self.safety = safety
         self.record_dir = Path(record_dir) if record_dir is not None else None
         self.first_scenario, self.rtf = scenario, real_time_factor
@@ -255,7 +264,8 @@ class Harness:
                 "RACECAV_SIM__LOCKSTEP_TIMEOUT_S": "0.5",
                 "RACECAV_SIM__REAL_TIME_FACTOR": str(self.rtf),
                 # a wide-view policy needs the wide scan (it holds the paper's rays too)
-                "RACECAV_SIM__SCAN": scan_kind(self.ctrl)})
+                "RACECAV_SIM__SCAN": scan_kind(self.ctrl),
+                "RACECAV_SIM__PERTURB": json.dumps(self.perturb.active())})
             if self.charge_ms is not None:
                 env["RACECAV_SIM__LOCKSTEP_COMPUTE_MS"] = repr(float(self.charge_ms))
             if self.safety:  # before the sim: a lockstep sim waits for its verdicts

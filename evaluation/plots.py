@@ -166,3 +166,35 @@ def plot_paths(name: str, paths: dict, out: Path) -> Path:
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def plot_degradation(curves: dict, path: Path, title: str = "") -> Path:
+    """One panel per sweep: success rate against the perturbation's size, a line per controller,
+    95 % Wilson whiskers.
+
+    :param curves: sweep -> (x label, {controller label: [(x, (successes, trials) or None), ...]}).
+    """
+    from racecav.evaluation.results import wilson
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), sharey=True)
+    for ax, (sweep, (xlabel, lines)) in zip(np.atleast_1d(axes), curves.items()):
+        for label, pts in lines.items():
+            pts = [(x, p) for x, p in pts if p is not None and p[1]]
+            if not pts:
+                continue
+            xs = [x for x, _ in pts]
+            rates = [100 * ok / n for _, (ok, n) in pts]
+            ci = [wilson(ok, n) for _, (ok, n) in pts]
+            lo = [max(0.0, r - 100 * c[0]) for r, c in zip(rates, ci)]
+            hi = [max(0.0, 100 * c[1] - r) for r, c in zip(rates, ci)]
+            ax.errorbar(xs, rates, yerr=[lo, hi], marker="o", capsize=3, label=label)
+        ax.set_xlabel(xlabel)
+        ax.set_title(sweep, fontsize=10)
+        ax.set_ylim(0, 105)
+        ax.grid(alpha=0.3)
+    np.atleast_1d(axes)[0].set_ylabel("success rate (%)")
+    np.atleast_1d(axes)[-1].legend(fontsize=8, loc="lower left")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(plt, fig, path)

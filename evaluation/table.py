@@ -33,6 +33,8 @@ CONFLICT = registry.CONFLICT_SCENARIOS
 SHORT = registry.SHORT
 PAPER_TABLE1 = registry.PAPER_TABLE1
 SECTIONS = ("table1", "conflict", "suite", "free", "roads")
+OPTIONAL_SECTIONS = ("robust",)
+"""Sections run only when --sections names them (robust: evaluation/robust.py)."""
 IMG_DIR = Path("docs/img")
 # the suite sections: (suite, its `racecav suite generate` --n, --n-train, --seed), made on first use
 # exactly as docs/world.md documents them; --suite replaces the conflict suite
@@ -87,10 +89,21 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     if getattr(args, "jobs", 1) < 1:
         print("racecav eval --table: --jobs must be >= 1", file=sys.stderr)
         return 2
-    if set(sections) - set(SECTIONS):
-        print(f"racecav eval --table: unknown section(s) {sorted(set(sections) - set(SECTIONS))}; known: {SECTIONS}",
-              file=sys.stderr)
+    if set(sections) - set(SECTIONS + OPTIONAL_SECTIONS):
+        print(f"racecav eval --table: unknown section(s) {sorted(set(sections) - set(SECTIONS + OPTIONAL_SECTIONS))}; "
+              f"known: {SECTIONS + OPTIONAL_SECTIONS}", file=sys.stderr)
         return 2
+    if "robust" in sections:
+        from racecav.evaluation import robust
+
+        if args.robust_trials < 1:
+            print("racecav eval --table: --robust-trials must be >= 1", file=sys.stderr)
+            return 2
+        bad = [n for n in robust.controllers(args) if n not in CONTROLLERS]
+        if bad:
+            print(f"racecav eval --table: unknown --robust-controllers {bad}; known: {sorted(CONTROLLERS)}",
+                  file=sys.stderr)
+            return 2
     unknown = [n for n in names if n not in CONTROLLERS]
     if unknown:
         print(f"racecav eval --table: unknown controller(s) {unknown}; known: {sorted(CONTROLLERS)}", file=sys.stderr)
@@ -163,8 +176,16 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
             print(f"racecav eval --table --from-store: {_store_dir(args)} holds no current cell for {len(cs)} "
                   f"of {row}'s cells (e.g. {', '.join(cs[:3])}; absent, or stored with another trial count, "
                   "scenario file or weights): measure them with --resume instead of --from-store", file=sys.stderr)
+        if "robust" in sections:
+            _, _, lack = robust.run(args, cfg, store, out, from_store=True)
+            if lack:
+                print(f"racecav eval --table --from-store: {_store_dir(args)} holds no current robust cell for "
+                      f"{len(lack)} cells (e.g. {', '.join(lack[:3])}; absent, or stored with another trial count, "
+                      "scenario file or weights): measure them with --resume instead of --from-store", file=sys.stderr)
+                return 2
         if any(lacking.values()):
             return 2
+    commits: dict[str, int] = {}  # the code the reused cells were measured with
     results: dict[tuple[str, str], object] = {}
     suite_results: dict[str, dict[str, dict]] = {sec: {} for sec in suites}
     roads_results: dict[str, dict[str, dict]] = {split: {} for split in roads}
@@ -183,7 +204,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="table", dynamic_ncols=True,
                                                  mininterval=1.0)
     try:
-        for name, on in runs:
+        for name, on in (runs if per_run else []):
             ctrl = CONTROLLERS[name]
             key = name + ("+safety" if on else "")  # as run_trials names it
             bar.set_description_str(key)
@@ -235,6 +256,12 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         error = e
     finally:
         bar.close()
+    robust_results: dict = {}
+    if "robust" in sections and error is None:
+        robust_results, error, _ = robust.run(args, cfg, store, out, from_store)
+        for c in robust_results.values():
+            if c.complete:
+                commits[c.git_commit] = commits.get(c.git_commit, 0) + 1
     wall = time.monotonic() - wall0
     docs: dict[str, dict] = {}
     for sec, (suite_name, suite_cells_) in suites.items():
@@ -257,7 +284,6 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         for n, doc_ in roads_docs[split].items():
             (out / f"suite-{suite_name}-{split}").mkdir(parents=True, exist_ok=True)
             (out / f"suite-{suite_name}-{split}" / f"{n}.json").write_text(json.dumps(doc_, indent=1) + "\n")
-    commits: dict[str, int] = {}  # the code the reused cells were measured with
     for c in (c for cs in cells.values() for c in cs if c.stored is not None):
         commits[c.stored.git_commit] = commits.get(c.stored.git_commit, 0) + 1
     provenance = drift_text(commits, code_drift(commits))
@@ -266,7 +292,8 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     keys_ = [n + ("+safety" if safety == "on" else "") for n in names]  # the main tables' rows
     doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections,
                             suite=docs.get("suite"), free=docs.get("free"), provenance=provenance,
-                            roads=(roads, roads_docs) if roads_docs else None)
+                            roads=(roads, roads_docs) if roads_docs else None,
+                            robust_results=robust_results if "robust" in sections else None)
     for name in keys_:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
         print(f"{_label(name):34s} " + "  ".join(
@@ -392,7 +419,8 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
     from racecav.common import procs
 
     base = ["eval", "--table", "--trials", str(trials), "--trials-per-scenario", str(args.trials_per_scenario),
-            "--sections", ",".join(sections), "--mode", args.mode, "--real-time-factor", str(args.real_time_factor),
+            "--sections", ",".join(s for s in sections if s not in OPTIONAL_SECTIONS),  # robust: in the parent
+            "--mode", args.mode, "--real-time-factor", str(args.real_time_factor),
             "--out-dir", str(args.out_dir), "--no-progress",
             "--compute-charge", getattr(args, "compute_charge", "fixed")]
     for flag, value in (("--seed", args.seed), ("--suite", args.suite), ("--config", getattr(args, "config", None)),
@@ -452,7 +480,8 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
 
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
                       error, sections=SECTIONS, suite: dict | None = None, free: dict | None = None,
-                      provenance: str = "", roads: tuple[dict, dict] | None = None) -> Path:
+                      provenance: str = "", roads: tuple[dict, dict] | None = None,
+                      robust_results: dict | None = None) -> Path:
     """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4;
     ``provenance``: store.drift_text of the reused cells, in the header."""
     from racecav.common.bench import machine
@@ -480,6 +509,13 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         cmd += f" --mode {args.mode}"
     if getattr(args, "safety", "off") != "off":
         cmd += f" --safety {args.safety}"
+    if robust_results is not None:
+        from racecav.evaluation import robust
+
+        if args.robust_trials != 30:
+            cmd += f" --robust-trials {args.robust_trials}"
+        if robust.controllers(args) != robust.controllers(None):
+            cmd += f" --robust-controllers {','.join(robust.controllers(args))}"
     stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     trial_wall = sum(t.wall_s for r in results.values() for t in r.trials) \
         + sum(d["wall_s"] for sec in (suite, free) if sec for d in sec.values())  # the suite sections' too
@@ -585,6 +621,8 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
         from racecav.evaluation.roads_doc import roads_section
 
         lines += roads_section(*roads, img, doc, label=_label)
+    if robust_results is not None:
+        lines += robust.section(robust_results, args, img, doc, _label)
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # --jobs N: N processes; --resume: continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "

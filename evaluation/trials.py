@@ -196,13 +196,31 @@ def guarded(fn) -> int:
         signal.signal(signal.SIGTERM, old)
 
 
+def eval_perturb(args: argparse.Namespace, cfg: Config):
+    """The sim's perturbation of an evaluation: ``--perturb`` (one line naming an unknown preset
+    or key: ValueError), else the configuration's sim.perturb; timing needs lockstep."""
+    from racecav.common.config import PerturbConfig
+    from racecav.common.perturb import parse_text
+
+    text = getattr(args, "perturb", None)
+    try:
+        p = cfg.sim.perturb if text is None else PerturbConfig.model_validate(parse_text(text))
+    except ValueError as e:
+        msg = str(e) if not hasattr(e, "errors") else "; ".join(
+            f"{'.'.join(map(str, x['loc']))}: {x['msg']}" for x in e.errors())
+        raise ValueError(f"--perturb: {msg.removeprefix('perturb: ')}") from None
+    if p.timing() and getattr(args, "mode", "lockstep") != "lockstep":
+        raise ValueError("--perturb: scan_jitter_s, latency_s and actuator_delay_s need --mode lockstep")
+    return p
+
+
 def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -> int:
     """One scenario x one controller (``racecav eval --scenario S --controller C``).
 
     :param per_trial: also print one line per trial (the demo).
     """
     from racecav.common.scenario import load_scenario
-    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
+    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing, perturbed
 
     trials = args.trials if args.trials is not None else 10
     if trials < 1:
@@ -214,6 +232,11 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
         print(f"racecav eval: {e}", file=sys.stderr)
         return 2
     ctrl = CONTROLLERS[args.controller]
+    try:
+        perturb = eval_perturb(args, cfg)
+    except ValueError as e:
+        print(f"racecav eval: {e}", file=sys.stderr)
+        return 2
     if getattr(args, "model", None) is not None:
         if ctrl.service != "policy":
             print(f"racecav eval: --model applies to the drl-* controllers, not {ctrl.name}", file=sys.stderr)
@@ -224,6 +247,7 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
     if why:
         print(f"racecav eval: cannot evaluate {ctrl.name}: {why}", file=sys.stderr)
         return 2
+    ctrl = perturbed(ctrl, perturb)
     sc = load_scenario(ref)
     seed = args.seed if args.seed is not None else sc.seed
     safety = getattr(args, "safety", "off") == "on"
@@ -238,7 +262,7 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
         record_dir = (args.out_dir / "mcap" / stem) if record is True else record
         with Harness(cfg, ctrl, args.mode, ref, args.out_dir / "logs" / stem, args.real_time_factor,
                      record_dir=record_dir, safety=safety,
-                     compute_charge=getattr(args, "compute_charge", "fixed")) as h:
+                     compute_charge=getattr(args, "compute_charge", "fixed"), perturb=perturb) as h:
             res, error = run_trials(h, ref, path, trials, seed, jsonl, args.resume,
                                     bar=NoBar() if args.no_progress else None)
     except HarnessError as e:

@@ -25,6 +25,7 @@ import numpy as np
 import pybullet as p
 from pybullet_utils.bullet_client import BulletClient
 
+from racecav.common import perturb as P
 from racecav.common.lidar import LidarSpec, ray_angles, sanitize, scan_ranges
 from racecav.sim.actors import ActorBatch
 from racecav.sim.progress import LoopProgress, dense_centerline
@@ -131,6 +132,9 @@ class BulletWorld:
     :param n_obstacles: override the scenario's number of traffic cars.
     :param lidar: lidar spec (default: the car's).
     :param seed: seed of the first reset.
+    :param perturb: sim-to-real perturbations (a PerturbConfig or its text; common/perturb.py):
+        the agent's scan, the car, the floor's friction and the steering offset. Timing is the
+        caller's (the sim service's schedule).
     """
 
     n_envs = 1
@@ -138,9 +142,12 @@ class BulletWorld:
     def __init__(self, scenario: Scenario | str = "racetrack", car: CarParams | None = None,
                  lidar_all: bool = False, traffic_driver: TrafficDriver | None = None,
                  heading: str | None = None, n_obstacles: int | None = None,
-                 lidar: LidarSpec | None = None, seed: int = 0, agent_speed_scale: float | None = None):
+                 lidar: LidarSpec | None = None, seed: int = 0, agent_speed_scale: float | None = None,
+                 perturb=None):
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
-        self.car = car or load_car()
+        self.perturb = P.make(perturb)
+        self.car = P.perturbed_car(car or load_car(), self.perturb)
+        self._prng = P.trial_rng(seed)
         self.spec = lidar or self.car.lidar
         self.world: World = self.scenario.build_world()
         self.lidar_all = lidar_all
@@ -193,7 +200,8 @@ class BulletWorld:
         bc.setPhysicsEngineParameter(deterministicOverlappingPairs=1)
         ground = bc.createCollisionShape(p.GEOM_PLANE)
         self.ground = bc.createMultiBody(0, ground)
-        bc.changeDynamics(self.ground, -1, lateralFriction=1.0)
+        # Bullet multiplies the two bodies' coefficients: the tyres' (car file) times the floor's
+        bc.changeDynamics(self.ground, -1, lateralFriction=self.perturb.friction)
         bc.setCollisionFilterGroupMask(self.ground, -1, GROUND_GROUP, 0xFFFF)
         self.wall_bodies = self._build_walls()
         self.cars: list[_Car] = []
@@ -257,6 +265,7 @@ class BulletWorld:
         if seed is None:
             seed, self._seed = self._seed, self._seed + 1
         self.episode_seed = seed
+        self._prng = P.trial_rng(seed)
         rng = np.random.default_rng(seed)
         self.heading = options.get("heading", self.heading)
         self._build()
@@ -377,7 +386,7 @@ class BulletWorld:
         self.action = a
         self.brake = brake
         self.throttle[0] = 0.0 if brake else throttle_from_action(a[0])
-        self.steer_target[0] = steer_from_action(a[1], self.car)
+        self.steer_target[0] = self._steer_offset(steer_from_action(a[1], self.car))
 
     def set_physical(self, throttle: float, steering_angle: float, brake: bool = False) -> None:
         """Set the agent's physical command (T in [0, 1], wheel angle in rad) as a DriveCommand
@@ -385,8 +394,13 @@ class BulletWorld:
         self.action = np.array([float(np.clip(throttle, 0.0, 1.0)), float(steering_angle) / self.car.steer_gain])
         self.brake = brake
         self.throttle[0] = 0.0 if brake else float(np.clip(throttle, 0.0, 1.0))
-        self.steer_target[0] = float(np.clip(steering_angle, self.car.delta_min, self.car.delta_max))
+        self.steer_target[0] = self._steer_offset(float(np.clip(steering_angle, self.car.delta_min, self.car.delta_max)))
 
+    def _steer_offset(self, delta: float) -> float:
+        """The agent's wheel angle for a commanded one: a steering trim error (perturb) within the
+        servo's limits."""
+        off = self.perturb.steer_offset_rad
+        return float(np.clip(delta + off, self.car.delta_min, self.car.delta_max)) if off else float(delta)
     def begin_period(self) -> None:
         """Start of a control period: the traffic driver chooses the obstacle cars' actions."""
         if self.actors is not None:  # scenario triggers and synchronised speeds
@@ -522,7 +536,7 @@ class BulletWorld:
         else:
             scans = self.lidar([0])
             self._traffic_scans = None
-        self.scan_ranges = scans[0]
+        self.scan_ranges = P.perturb_scan(scans[0], self.spec, self.perturb, self._prng)
         return sanitize(self.scan_ranges, self.spec)
 
     def _traffic_obs(self) -> TrafficObs:

@@ -437,7 +437,7 @@ def contacts(x, y, yaw, active, walls, wall_box, corners, hx, hy, wall_r, check,
 @njit(cache=True, fastmath=True)
 def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, skid, wheel_radius,
               wheelbase, mass, g, lf, lr, iz, mu, c_sf, c_sr, steer_tau, speed_tau, scrub,
-              scrub_lat, v_kin, dt, c_speed_inv=0.0, heading_c4=0.0, heading_s4=0.0):
+              scrub_lat, v_kin, dt, c_speed_inv=0.0, heading_c4=0.0, heading_s4=0.0, a_lat_max=math.inf):
     """One physics substep of the single-track model for every car.
 
     The wheel speed ``w`` and the rate-limited steering command ``delta_cmd`` of this substep come
@@ -458,6 +458,9 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, s
 
     ``skid`` (N, C) bool: braking cars, whose locked wheels slide straight (PyBullet: no lateral
     grip, the steering angle has no effect until the brake is released).
+
+    ``a_lat_max``: the yaw rate is capped so that ``r v`` stays within it (m/s^2): a floor of
+    friction mu < 1 holds at most mu g sideways (common/perturb.py); inf: the fitted model alone.
     """
     N, C = x.shape
     L = lf + lr
@@ -510,6 +513,8 @@ def integrate(x, y, yaw, v, beta, r, delta, delta_cmd, w, speed_scale, active, s
                 det = m11 * m22 - m12 * m21
                 b = (m22 * r1 - m12 * r2) / det
                 rr = (m11 * r2 - m21 * r1) / det
+                if abs(rr * vm) > a_lat_max:  # the tyres slide: the car runs wide
+                    rr = math.copysign(a_lat_max / vm, rr)
             beta[n, c] = b
             r[n, c] = rr
             # base_link velocity in the body frame: CoG velocity + r x offset

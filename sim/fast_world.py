@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from racecav.common import lidar as lidar_mod
+from racecav.common import perturb as P
 from racecav.common import vehicle as vehicle_mod
 from racecav.sim import fast_kernels as K
 from racecav.sim.progress import CENTERLINE_DS, LoopProgress, dense_centerline  # noqa: F401 (re-exported)
@@ -56,13 +57,20 @@ class FastWorld:
     :param seed: seed of the reset randomisation.
     :param parallel: spread the lidar over numba's threads (helps when a core is free: 1.5x
         measured on the 2-core machine under load; contention when several runs share the cores).
+    :param perturb: sim-to-real perturbations of the agents (a PerturbConfig or its text;
+        common/perturb.py): scan, car, floor friction (braking at friction x the fitted
+        deceleration, sideways acceleration capped at friction x g below 1), steering offset and
+        the delay of their actions (applied at the first substep after it).
+    :param perturb_random: draw each world's perturbation anew at each of its resets, every
+        field between the ideal value and ``perturb``'s (training; the car's mount yaw, mass and
+        the friction stay ideal).
     """
 
     def __init__(self, n_envs: int = 1, world="racetrack", car="slash", n_obstacles: int = 15,
                  heading: str = "default", driver="centerline", obstacle_lidar: bool | None = None,
                  agent_speed_scale: float | None = None, control_period: float | None = None,
                  physics_substeps: int | None = None, seed: int | None = None,
-                 parallel: bool = False, scenarios=None):
+                 parallel: bool = False, scenarios=None, perturb=None, perturb_random: bool = False):
         self.scenarios = list(scenarios or [])
         if self.scenarios:
             # scenario episodes: the ego and the scenario's kinematic actors (sim/actors.py)
@@ -80,6 +88,10 @@ class FastWorld:
             world = load_world(world)
         if isinstance(car, str):
             car = vehicle_mod.load_car(car)
+        self.perturb = P.make(perturb)
+        self.perturb_random = perturb_random
+        if not perturb_random:
+            car = P.perturbed_car(car, self.perturb)
         if heading not in ("default", "reversed"):
             raise ValueError(f"heading: expected 'default' or 'reversed', got {heading!r}")
         if not 0 <= n_obstacles <= 15:
@@ -153,6 +165,18 @@ class FastWorld:
         self.respawns = 0
         self.bad_actions = 0  # non-finite agent actions replaced by 0 (counted)
         self.rng = np.random.default_rng(seed)
+        self._prng = P.trial_rng(0 if seed is None else seed)
+        # each world's perturbation (perturb_random: drawn at its resets), the agents' scans as
+        # they see them, and their recent actions for the delay (newest first)
+        self.env_perturb = [self.perturb] * N
+        self.obs_ranges = self.ranges[:, 0].copy() if self.perturb.active() else None
+        self.steer_offset = f(N)
+        self.delay = f(N)
+        self.jitter = f(N)
+        self._hist_a = f((N, 1, 2))
+        self._hist_b = np.zeros((N, 1), bool)
+        self._hist_d = f((N, 1))
+        self._set_perturb_arrays(np.arange(N))
         # progress (m): along the centerline in the agent's direction (traffic), or along the
         # ego's initial heading (scenario episodes)
         self.prog = f(N)
@@ -180,7 +204,12 @@ class FastWorld:
         self.lf, self.lr, self.iz, self.mu = float(b.lf), float(b.lr), float(b.iz), float(b.mu)
         self.c_sf, self.c_sr = float(b.c_sf), float(b.c_sr)
         self.steer_tau, self.speed_tau = float(b.steer_tau), float(b.speed_tau)
-        self.brake_decel = float(b.brake_decel)
+        # the floor's friction (perturb): the fitted tyre model is kept; a braking car skids at
+        # friction x its fitted deceleration, and below 1 the sideways acceleration is capped at
+        # friction x g (PyBullet's Coulomb friction slides there)
+        fr = 1.0 if self.perturb_random else self.perturb.friction
+        self.brake_decel = float(b.brake_decel) * fr
+        self.a_lat_max = fr * GRAVITY if fr < 1.0 else math.inf
         self.scrub = float(getattr(b, "scrub", 0.0))
         self.scrub_lat = float(getattr(b, "scrub_lat", 0.0))
         self.c_speed_inv, self.heading_c4, self.heading_s4 = b.c_speed_inv, b.heading_c4, b.heading_s4
@@ -188,6 +217,40 @@ class FastWorld:
     # ------------------------------------------------------------------ resets
     def seed(self, seed: int | None) -> None:
         self.rng = np.random.default_rng(seed)
+        self._prng = P.trial_rng(0 if seed is None else seed)
+
+    def randomise(self, perturb) -> None:
+        """From the next resets on, each world draws its own perturbation between the ideal world
+        and ``perturb`` (training; see the constructor's ``perturb_random``)."""
+        if self.perturb.active() and not self.perturb_random:
+            raise ValueError("perturb: this world already runs under a fixed perturbation")
+        self.perturb, self.perturb_random = P.make(perturb), True
+        if self.obs_ranges is None and self.perturb.active():
+            self.obs_ranges = self.ranges[:, 0].copy()
+        self._set_perturb_arrays(np.arange(self.n_envs))
+
+    def _set_perturb_arrays(self, envs) -> None:
+        """Per-world perturbation state of ``envs`` at a reset (perturb_random: a new draw)."""
+        for n in envs:
+            if self.perturb_random:
+                self.env_perturb[n] = P.draw(self.perturb, self._prng)
+                scale = self.agent_speed_scale * self.env_perturb[n].motor_gain
+                self.w[n, 0] *= self.speed_scale[n, 0] / scale  # the same body speed
+                self.speed_scale[n, 0] = scale
+            p = self.env_perturb[n]
+            self.steer_offset[n] = p.steer_offset_rad
+            self.delay[n] = p.latency_s + p.actuator_delay_s
+            self.jitter[n] = p.scan_jitter_s
+        most = float((self.delay + self.jitter).max())
+        need = int(math.ceil(most / self.control_period)) + 2 if most > 0 else 1
+        if need > self._hist_a.shape[1]:
+            N = self.n_envs
+            self._hist_a = np.concatenate([self._hist_a, np.zeros((N, need - self._hist_a.shape[1], 2))], 1)
+            self._hist_b = np.concatenate([self._hist_b, np.zeros((N, need - self._hist_b.shape[1]), bool)], 1)
+            self._hist_d = np.concatenate([self._hist_d, np.zeros((N, need - self._hist_d.shape[1]))], 1)
+        self._hist_a[envs] = 0.0  # before the first action the agent coasts, as the sim's
+        self._hist_b[envs] = False
+        self._hist_d[envs] = 0.0
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
         """Reset every world. :return: agent observations (N, 170) float32."""
@@ -218,6 +281,7 @@ class FastWorld:
 
     def _restart(self, envs) -> None:
         """Episode clock, steering command, slip, yaw rate and contact flags of ``envs`` to zero."""
+        self._set_perturb_arrays(np.atleast_1d(envs))
         self.delta_cmd[envs] = 0.0
         self.beta[envs] = 0.0
         self.r[envs] = 0.0
@@ -315,6 +379,18 @@ class FastWorld:
         car = self.car
         T = vehicle_mod.throttle_from_action(self.actions[..., 0])
         target = vehicle_mod.steer_from_action(self.actions[..., 1], car)
+        delayed = bool(self.delay.any() or self.jitter.any())
+        if delayed:  # the agents' actions take effect their delay after their scan (perturb)
+            self._hist_a = np.roll(self._hist_a, 1, axis=1)
+            self._hist_b = np.roll(self._hist_b, 1, axis=1)
+            self._hist_d = np.roll(self._hist_d, 1, axis=1)
+            self._hist_a[:, 0] = a
+            self._hist_b[:, 0] = False if brake is None else brake
+            self._hist_d[:, 0] = self.delay + (self._prng.uniform(0.0, 1.0, self.n_envs) * self.jitter
+                                               if self.jitter.any() else 0.0)
+            lag = np.arange(self._hist_d.shape[1]) * self.control_period
+        if self.steer_offset.any():
+            target[:, 0] = np.clip(target[:, 0] + self.steer_offset, car.delta_min, car.delta_max)
         self.wall_hit[:] = False
         self.car_hit[:] = -1
         scenario = self.actors is not None
@@ -323,6 +399,16 @@ class FastWorld:
             if scenario:  # actors first, as the PyBullet backend moves them before its step
                 self.actors.advance(self.dt)
                 self._actors_to_cars()
+            if delayed:  # the newest action in effect at this substep's start
+                due = self._hist_d - lag <= k * self.dt + 1e-9
+                j = np.where(due.any(axis=1), due.argmax(axis=1), due.shape[1] - 1)
+                rows = np.arange(self.n_envs)
+                a_k = self._hist_a[rows, j]
+                T[:, 0] = vehicle_mod.throttle_from_action(a_k[:, 0])
+                target[:, 0] = np.clip(vehicle_mod.steer_from_action(a_k[:, 1], car) + self.steer_offset,
+                                       car.delta_min, car.delta_max)
+                brake = self._hist_b[rows, j]
+                self.skid[:, 0] = brake
             self.w = vehicle_mod.wheel_speed_step(self.w, T, self.dt, car)
             if brake is not None:  # the wheels' target follows the skidding body down to 0
                 scale = car.wheel_radius * self.speed_scale[brake, 0]
@@ -333,7 +419,7 @@ class FastWorld:
                         car.wheelbase, car.mass, GRAVITY, self.lf, self.lr, self.iz, self.mu,
                         self.c_sf, self.c_sr, self.steer_tau, self.speed_tau, self.scrub,
                         self.scrub_lat, V_KIN, self.dt, self.c_speed_inv, self.heading_c4,
-                        self.heading_s4)
+                        self.heading_s4, self.a_lat_max)
             K.box_corners(self.x, self.y, self.yaw, self.hx, self.hy, self.corners)
             K.contacts(self.x, self.y, self.yaw, self.active, self.walls, self.wall_box,
                        self.corners, self.hx, self.hy, self.wall_r,
@@ -394,6 +480,9 @@ class FastWorld:
                     self.corners, self.mount, self.ray_c, self.ray_s, self.ray_t,
                     self.spec.angle_min, self.spec.angle_increment, self.spec.range_max,
                     self.ranges)
+        if self.obs_ranges is not None:  # the agents' scans as their sensor service publishes them
+            for n in np.flatnonzero(observe[:, 0]):
+                self.obs_ranges[n] = P.perturb_scan(self.ranges[n, 0], self.spec, self.env_perturb[n], self._prng)
 
     def seen_by_agent(self, envs: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
         """(len(envs), C - 1) bool: the other cars that return at least one ray of the agent's
@@ -433,7 +522,7 @@ class FastWorld:
     # ------------------------------------------------------------------ views
     def agent_obs(self) -> np.ndarray:
         """The agents' observations (N, 170): Scan ranges through the shared ``sanitize``."""
-        return lidar_mod.sanitize(self.ranges[:, 0], self.spec)
+        return lidar_mod.sanitize(self.ranges[:, 0] if self.obs_ranges is None else self.obs_ranges, self.spec)
 
     def observations(self) -> np.ndarray:
         """Every car's observation (N, C, 170) (obstacle scans are current only if

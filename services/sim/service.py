@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import argparse
 import json
+
+from pydantic import ValidationError
 import logging
 import queue
 import threading
@@ -47,6 +49,7 @@ from racecav.common.bus import Service
 from racecav.common.config import Config, ConfigError, apply_options
 from racecav.common.lidar import make_scan, published_scan
 from racecav.common.messages import DriveCommand, Obstacle, ObstacleStates, VehicleState
+from racecav.common.perturb import command_delay, trial_rng
 from racecav.common.scenario import load_scenario, scenario_names
 from racecav.common.vehicle import load_car
 from racecav.services.actuator.control import CommandMux, Decision
@@ -64,6 +67,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heading", choices=["default", "reversed"], help="racetrack: agent heading")
     p.add_argument("--on-end", choices=["hold", "reset"], help="at contact / end of trial")
     p.add_argument("--lidar-all", action="store_true", help="cast the lidar for every car")
+    p.add_argument("--perturb", metavar="PRESET|KEY=VALUE,...",
+                   help="sim-to-real perturbations: a preset of common/data/perturbations.toml (s2-nominal, "
+                        "s2-pessimistic, worn-car, slippery-floor, late-computer), key=value pairs of "
+                        "sim.perturb, or both (docs/robustness.md); default: sim.perturb")
 
 
 OPTIONS = {"scenario": "scenario", "mode": "mode", "real_time_factor": "real_time_factor", "seed": "seed",
@@ -79,7 +86,18 @@ def sim_config(args: argparse.Namespace, cfg: Config):
         extra["scenario"] = "racetrack"
     if getattr(args, "lidar_all", False):
         extra["lidar_all"] = True
-    return apply_options(cfg, SECTION, args, OPTIONS, extra).sim
+    if getattr(args, "perturb", None) is not None:
+        from racecav.common.perturb import parse_text
+
+        try:
+            extra["perturb"] = parse_text(args.perturb)
+        except ValueError as e:  # one line naming the unknown preset or key
+            raise ConfigError(f"--{e}") from None
+    out = apply_options(cfg, SECTION, args, OPTIONS, extra).sim
+    if out.mode == "realtime" and out.perturb.timing():
+        raise ConfigError("sim.perturb: scan_jitter_s, latency_s and actuator_delay_s are charged in sim time: "
+                          "they need --mode lockstep")
+    return out
 
 
 def run(args: argparse.Namespace, cfg: Config) -> int:
@@ -160,13 +178,14 @@ class SimService(Service):
         if self.scfg.lidar_range_max is not None:
             spec = type(spec).model_validate({**spec.model_dump(), "range_max": self.scfg.lidar_range_max})
         return BulletWorld(scenario, car=self.car_params, lidar_all=self.scfg.lidar_all, lidar=spec,
-                           heading=self.scfg.heading if scenario.traffic else None)
+                           heading=self.scfg.heading if scenario.traffic else None, perturb=self.scfg.perturb)
 
     def _new_episode(self, seed: int, heading: str | None = None) -> None:
         if self.episode >= 0:
             self.offset_ns += int(round((self.world.t + EPISODE_GAP_S) * 1e9))
         opts = {"heading": heading} if heading and self.world.scenario.traffic else {}
         self.world.reset(seed=seed, options=opts)
+        self._timing_rng = trial_rng(seed, stream=1)  # perturbed timing: a function of the seed only
         self.episode += 1
         self.seed = seed
         self.next_seed = (seed + 1) % (MAX_SEED + 1)
@@ -288,6 +307,7 @@ class SimService(Service):
             (a, sa), (b, sb) = self._rtf_window[0], self._rtf_window[-1]
             rtf = (sb - sa) / (b - a) if b > a else None
         self._info = {"mode": self.scfg.mode, "lockstep_compute_ms": self.scfg.lockstep_compute_ms,
+                      "perturb": self.scfg.perturb.text(),
                       "scenario": w.scenario.name, "world": w.world.name,
                       "heading": w.heading, "seed": self.seed, "episode": self.episode, "t": w.t,
                       "steps": w.steps, "done": self.done, "collided": w.collided,
@@ -475,13 +495,17 @@ class SimService(Service):
         # the mux runs on the episode's sim time (it forgot every input at the reset; the e-stop
         # latch outlives episodes): the same trial gives the same schedule to the last bit
 
+        # perturbed timing (sim.perturb): the answer also waits for the scan's jitter, the extra
+        # latency and the actuator delay; a delay past this period carries over (self.pending)
+        extra = command_delay(self.scfg.perturb, self._timing_rng) if self.scfg.perturb.timing() else 0.0
+
         def when(msg: DriveCommand, _arrival: int) -> float:
             # an answer to this scan counts from the scan plus its compute time; other inputs
             # (teleop, ROS) from the start of this period
             if msg.scan_seq != want:
                 return t_k
             fixed = self.scfg.lockstep_compute_ms
-            return t_k + (msg.compute_ns * 1e-9 if fixed is None else fixed * 1e-3)
+            return t_k + (msg.compute_ns * 1e-9 if fixed is None else fixed * 1e-3) + extra
 
         # the controller's input is its answer to this scan (taken above), not the newest sample
         new = [(when(cmd, 0), keys.CMD, cmd)]
