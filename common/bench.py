@@ -39,6 +39,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "faults": ("racecav.services.bench_faults", "reliability: kill -> brake, e-stop latch, lidar replug, router restart, fuzz; writes docs/reliability.md"),
     "controllers": ("racecav.services.bench_controllers", "paper Table 2 on this machine: FLOPs, in-process and end-to-end latency of policy and MPC-APF"),
     "record": ("racecav.services.record.bench", "policy scan->command latency with racecav record / racecav ros2 running beside it; their per-message cost"),
+    "ray": ("racecav.evaluation.bench_ray", "eval --table --ray against the local pool (--jobs) on this machine; the full table's wall time on N machines, projected (extra: ray)"),
     "safety": ("racecav.services.safety.bench", "safety supervisor: scan -> brake latency (real processes), false brakes over ~100 laps of the empty tracks (shadow mode)"),
 }
 

@@ -105,6 +105,54 @@ def exit_with_parent(poll_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
+CELL_ENV = "RACECAV_CELL"
+"""Set by an evaluation cell on a Ray worker (evaluation/ray_cells.py): every process the cell
+starts inherits it, so :func:`reap` finds them whoever their parent is now."""
+
+
+def tagged(tag: str) -> list[int]:
+    """Pids of the processes (other than this one) whose environment holds ``CELL_ENV=tag``."""
+    want = f"{CELL_ENV}={tag}".encode()
+    pids = []
+    for d in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        if not d.isdigit() or int(d) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{d}/environ", "rb") as f:
+                if want in f.read().split(b"\0"):
+                    pids.append(int(d))
+        except OSError:  # gone, or not ours to read
+            continue
+    return pids
+
+
+def reap(tag: str, timeout: float = 5.0) -> int:
+    """Stop every process tagged ``tag`` (SIGTERM to its group, then SIGKILL): what a cell left
+    when its worker died (Ray ends only a worker's direct children, and only on a clean exit).
+    Returns how many there were."""
+    pids = tagged(tag)
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in pids:
+            try:
+                os.killpg(pid, sig) if os.getpgid(pid) == pid else os.kill(pid, sig)
+            except (ProcessLookupError, PermissionError):
+                pass
+        deadline = time.monotonic() + timeout
+        while (left := [p for p in pids if _alive(p)]) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not left:
+            break
+    return len(pids)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
+    except OSError:
+        return False
+
+
 def free_port() -> int:
     """A TCP port on loopback that nothing listens on right now."""
     with socket.socket() as s:

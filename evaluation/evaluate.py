@@ -24,6 +24,7 @@ from pathlib import Path
 
 from racecav.common import registry
 from racecav.common.config import Config
+from racecav.evaluation import ray_cells
 from racecav.evaluation.trials import guarded, run_single
 
 OUT_DIR = Path("runs/eval")
@@ -87,6 +88,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--table: run the (controller, safety) rows in a pool of N processes (each about "
                         "one core: its own router, sim and controller), the rows with most trials left first, "
                         "then write the document from their cells")
+    p.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                   help="--table/--suite: run each cell as a Ray task (extra: ray; docs/cluster.md) on the "
+                        "cluster at ADDRESS (host:port of `ray start --head`, or auto), or on a local Ray "
+                        "started on this machine's cores when no ADDRESS is given")
+    p.add_argument("--ray-cpus", type=float, default=ray_cells.CELL_CPUS,
+                   help="--ray: CPUs each cell requests (its sim and controller keep about two cores busy)")
+    p.add_argument("--ray-retries", type=int, default=ray_cells.RETRIES,
+                   help="--ray: times a cell whose worker or node died is run again")
     p.add_argument("--safety", choices=["on", "off", "both"], default="off",
                    help="on: also run racecav safety (the emergency-brake supervisor, a brake input of the "
                         "sim's mux); results go to *-safety.json, the controller is named CONTROLLER+safety; "
@@ -114,6 +123,12 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
             print(f"racecav eval: --out-dir {args.out_dir}: cannot create the folder ({e.strerror or e})",
                   file=sys.stderr)
             return 2
+    if args.ray is not None and not (args.table or (args.suite and args.controller)):
+        print("racecav eval: --ray is for --table and --suite (a single scenario runs here)", file=sys.stderr)
+        return 2
+    if args.ray is not None and (args.ray_cpus <= 0 or args.ray_retries < 0):
+        print("racecav eval: --ray-cpus must be > 0 and --ray-retries >= 0", file=sys.stderr)
+        return 2
     if args.table:
         if getattr(args, "model", None) is not None:
             print("racecav eval: --model is for single runs (--scenario/--controller), not --table", file=sys.stderr)

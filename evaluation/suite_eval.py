@@ -122,9 +122,16 @@ def run_suite(args, cfg) -> int:
     wall0 = time.monotonic()
     results, error = {}, None
     try:
-        with Harness(cfg, ctrl, args.mode, str(cells[0].path.resolve()), out / "logs", args.real_time_factor,
-                     compute_charge=getattr(args, "compute_charge", "fixed")) as h:
-            results, error = run_cells(h, cells, k, seed, out, args.resume, bar)
+        if getattr(args, "ray", None) is not None:  # the files in chunks, each a Ray task (evaluation/ray_cells.py)
+            from racecav.evaluation import ray_cells
+
+            bar.close()  # ray_cells has its own
+            results, why = ray_cells.run_suite(args, cells, out)
+            error = RuntimeError(why) if why else None
+        else:
+            with Harness(cfg, ctrl, args.mode, str(cells[0].path.resolve()), out / "logs", args.real_time_factor,
+                         compute_charge=getattr(args, "compute_charge", "fixed")) as h:
+                results, error = run_cells(h, cells, k, seed, out, args.resume, bar)
     except HarnessError as e:
         error = e
     except (Interrupted, KeyboardInterrupt) as e:

@@ -194,8 +194,15 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     per_run = {r: sum(c.trials for c in cs) for r, cs in cells.items()}
     total = sum(per_run.values())
     jobs = min(getattr(args, "jobs", 1), len(runs))
-    if jobs > 1:  # the cells are computed by child tables; the pass below reads them and writes the doc
-        rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total, roads_rows)
+    ray = getattr(args, "ray", None) is not None and not from_store
+    if jobs > 1 or ray:  # the cells are computed elsewhere; the pass below reads them and writes the doc
+        if ray:  # Ray tasks, one per cell (evaluation/ray_cells.py)
+            from racecav.evaluation import ray_cells
+
+            rc = ray_cells.run_table(args, runs, cells, seeds, {**suites, **{f"roads/{k}": v for k, v in roads.items()}},
+                                     store, total, _done([c for cs in cells.values() for c in cs]) if args.resume else 0)
+        else:  # child tables, one per row
+            rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total, roads_rows)
         if rc != 0:
             return rc
         args.resume = True

@@ -100,19 +100,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          prefix="env.")
         return defaults, fast
 
+    stages = {}  # their parsers: racecav train sweep checks its trials' flags with them
     for stage, help_ in (("racing", "stage 1: the racing policy on the empty track (0 obstacles)"),
                          ("overtake", "stage 2: overtaking among obstacle cars (and scenario episodes)")):
-        p = sub.add_parser(stage, help=help_, description=help_)
+        p = stages[stage] = sub.add_parser(stage, help=help_, description=help_)
         add_flags(p, stage)
         p.set_defaults(stage=stage)
     help_ = "the yield teacher fitted by DAgger on the overtake env (training/dagger.py): the shipped avoid's recipe"
-    p = sub.add_parser("dagger", help=help_, description=help_)
+    p = stages["dagger"] = sub.add_parser("dagger", help=help_, description=help_)
     defaults, fast = add_flags(p, "dagger")
     add_config_flags(p, TrainConfig, DAGGER_FLAGS, defaults, fast)
     p.set_defaults(stage="dagger")
     from racecav.training import select  # cheap: argument definitions only
 
     select.add_subcommands(sub)
+    from racecav.training import sweep
+
+    sweep.add_subcommands(sub, stages)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -128,6 +132,10 @@ def run(args, cfg) -> int:
         return train_dagger(args, cfg)
     if args.train_cmd == "export":
         return export_onnx(args)
+    if args.train_cmd == "sweep":
+        from racecav.training import sweep
+
+        return sweep.run(args, cfg)
     from racecav.training import select
 
     return select.run(args, cfg)
