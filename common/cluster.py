@@ -22,7 +22,9 @@ def init(address: str):
         if address:
             ray.init(address=address, **kw)
         else:
-            ray.init(address="local", num_cpus=os.cpu_count(), object_store_memory=100 * 2**20, **kw)
+            # on loopback: a local Ray talks to no other machine
+            ray.init(address="local", num_cpus=os.cpu_count(), object_store_memory=100 * 2**20,
+                     _node_ip_address="127.0.0.1", **kw)
     except (ConnectionError, RuntimeError, ValueError, TimeoutError) as e:
         raise ConnectionError(f"cannot connect to Ray at {address or 'a new local instance'}: "
                               f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None

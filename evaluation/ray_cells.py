@@ -224,6 +224,8 @@ def run_tasks(args, tasks: list[tuple[Task, list]], write, total: int, initial: 
 
     from racecav.common import cluster
 
+    if not tasks:  # every cell is stored already
+        return 0
     try:
         ray = cluster.init(args.ray)
     except ImportError:

@@ -152,7 +152,8 @@ def run_trial(config: dict) -> dict:
 def _tune_trial(config: dict) -> None:
     from ray import tune
 
-    tune.report(run_trial(config["trial"]))
+    done = run_trial(config["trial"])
+    tune.report({k: v for k, v in done.items() if k != "select"})  # Tune's loggers take scalars and text
 
 
 def run(args, cfg) -> int:
