@@ -28,7 +28,7 @@ from pathlib import Path
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controllers", default="scripted,full-throttle", help="the small table's rows")
-    p.add_argument("--sections", default="table1,conflict", help="the small table's sections")
+    p.add_argument("--sections", default="conflict", help="the small table's sections")
     p.add_argument("--trials", type=int, default=4, help="trials per scenario cell of the small table")
     p.add_argument("--machines", default="1,2,4,8,16,32", help="N of the projection")
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"),

@@ -20,6 +20,7 @@ import pytest
 from racecav.common import procs
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
+pytestmark = pytest.mark.timeout(900)  # a Ray start and whole commands: minutes on a loaded 2-core box
 
 
 @pytest.fixture(scope="module")
@@ -180,6 +181,10 @@ def test_bad_ray_set_ups_exit_2_before_any_start(tmp_path):
     assert r.returncode == 2 and "--seed is set by the sweep" in r.stderr
     r = _racecav("train", "sweep", "racing", "--out", str(tmp_path), "--vary", "n-envs=a,b")
     assert r.returncode == 2 and "--n-envs" in r.stderr
+    (tmp_path / "seed0").mkdir()  # a trial folder of another sweep: its run would continue with its own flags
+    (tmp_path / "seed0" / "trial.json").write_text(json.dumps({"flags": ["--preset", "paper"]}))
+    r = _racecav("train", "sweep", "racing", "--out", str(tmp_path), "--seeds", "0", "--train-args=--preset fast")
+    assert r.returncode == 2 and "holds a trial made with other flags" in r.stderr
     assert not (tmp_path / "tune").exists()
 
 

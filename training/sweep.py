@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -93,6 +94,10 @@ def _plan(args) -> tuple[list[dict], str]:
             except SystemExit:
                 return [], f"--train-args/--vary: `racecav train {args.sweep_stage} {shlex.join([*flags, *extra])}` is refused"
             name = ("" if flag is None else f"{flag[2:]}{v}-") + f"seed{s}"
+            record = args.out / name / "trial.json"
+            if record.is_file() and json.loads(record.read_text()).get("flags") != [*flags, *extra]:
+                return [], (f"{record.parent} holds a trial made with other flags "
+                            f"({json.loads(record.read_text()).get('flags')}): use another --out")
             trials.append({"stage": args.sweep_stage, "flags": [*flags, *extra], "seed": s, "steps": int(args.steps),
                            "select": select, "run_dir": str((args.out / name).resolve()), "name": name,
                            "setting": None if flag is None else f"{flag[2:]}={v}"})
@@ -112,7 +117,7 @@ def _racecav(args: list[str], log: Path) -> None:
     """``racecav ARGS`` in its own process group, which stops itself if this worker dies."""
     from racecav.common import procs
 
-    p = procs.start(args, procs.bus_env("tcp/127.0.0.1:0"), log)  # no bus: training never opens one
+    p = procs.start(args, dict(os.environ), log)
     try:
         rc = p.wait()
     finally:
@@ -126,12 +131,13 @@ def run_trial(config: dict) -> dict:
     run_dir = Path(config["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
     record = run_dir / "trial.json"
-    want = {"steps": config["steps"], "select": config["select"]}
+    want = {"steps": config["steps"], "select": config["select"], "flags": config["flags"]}
     if record.is_file():
         done = json.loads(record.read_text())
         latest = json.loads((run_dir / "latest.json").read_text()) if (run_dir / "latest.json").is_file() else {}
-        if {k: done.get(k) for k in want} == want and latest.get("timesteps", 0) >= config["steps"]:
+        if "score" in done and {k: done.get(k) for k in want} == want and latest.get("timesteps", 0) >= config["steps"]:
             return done
+    record.write_text(json.dumps(want, indent=1) + "\n")  # its flags from the start: _plan refuses others
     train = ["train", config["stage"], *config["flags"], "--seed", str(config["seed"]), "--steps",
              str(config["steps"]), "--run-dir", str(run_dir), "--no-progress"]
     if (run_dir / "latest.zip").is_file():  # an earlier attempt's checkpoint: continue from it
@@ -153,7 +159,7 @@ def _tune_trial(config: dict) -> None:
     from ray import tune
 
     done = run_trial(config["trial"])
-    tune.report({k: v for k, v in done.items() if k != "select"})  # Tune's loggers take scalars and text
+    tune.report({k: v for k, v in done.items() if k not in ("select", "flags")})  # Tune logs scalars and text
 
 
 def run(args, cfg) -> int:
