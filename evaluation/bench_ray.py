@@ -87,7 +87,10 @@ def makespan(cells: list[float], n: int) -> float:
 def run(args, cfg) -> int:
     from racecav.common.bench import table, write_section
 
+    import os
+
     runs = {}
+    load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="racecav-bench-ray-") as tmp:
         tmp = Path(tmp)
         for name, extra in (("local pool (--jobs 2)", ("--jobs", "2")),
@@ -110,15 +113,19 @@ def run(args, cfg) -> int:
                      "-" if r["in_cells"] is None else f"{r['wall'] - r['in_cells']:.1f}",
                      f"{statistics.median(starts):.1f}" if starts else "-",
                      f"{statistics.median(walls):.1f}" if walls else "-"])
-    ray2 = runs["Ray, 2 CPUs per cell (--ray)"]
-    start = statistics.median(float(c["start_s"]) for c in ray2["cells"] if c["start_s"])
-    ray_start = ray2["wall"] - ray2["in_cells"]
+    load1 = os.getloadavg()[0]
     cells, cmd = full_table_cells(args.doc)
-    per_cell = [c + start for c in cells]
-    proj = []
-    for n in (int(x) for x in args.machines.split(",")):
-        span = makespan(per_cell, n) + ray_start
-        proj.append([n, f"{span / 3600:.2f}", f"{sum(per_cell) / n / 3600 + ray_start / 3600:.2f}"])
+    proj: dict[int, list] = {int(x): [int(x)] for x in args.machines.split(",")}
+    for name, per_machine in (("Ray, 2 CPUs per cell (--ray)", 1), ("Ray, 1 CPU per cell (--ray --ray-cpus 1)", 2)):
+        r = runs[name]
+        start = statistics.median(float(c["start_s"]) for c in r["cells"] if c["start_s"])
+        ray_start = r["wall"] - r["in_cells"]
+        per_cell = [c + start for c in cells]
+        for n, row in proj.items():
+            row += [f"{(makespan(per_cell, n * per_machine) + ray_start) / 3600:.2f}",
+                    f"{(sum(per_cell) / (n * per_machine) + ray_start) / 3600:.2f}"]
+    starts = {name: statistics.median(float(c["start_s"]) for c in r["cells"] if c["start_s"])
+              for name, r in runs.items() if r["cells"]}
     md = ("The same small table (controllers " + args.controllers + ", sections " + args.sections +
           f", {args.trials} trials per scenario cell: {n_cells} Ray cells) three ways, each in a fresh "
           "folder and store, one run each. Overhead = wall time beside the local pool's; Ray start = "
@@ -126,16 +133,22 @@ def run(args, cfg) -> int:
           "cell start = a cell's router, sim and controller starting on its worker.\n\n"
           + table(rows, ["run", "wall (s)", "x local pool", "Ray start + doc (s)", "cell start median (s)",
                          "cell wall median (s)"])
-          + "\n\nOn one 2-core machine Ray only adds its start and a service start per cell (the pool "
-          "starts services once per row); what it buys is the same command on more machines.\n\n"
+          + f"\n\nLoad average (1 min) {load0:.1f} before, {load1:.1f} after, on 2 cores (other work on the "
+          "machine): the absolute times are this load's, the ratios of one run are what compares. On one "
+          "2-core machine Ray only adds its start and a service start per cell (the pool starts services "
+          "once per row); what it buys is the same command on more machines. In lockstep a cell's sim and "
+          "controller take turns, so a cell keeps about one core busy: two cells per 2-core machine "
+          "(`--ray-cpus 1`) finish sooner than one (the default 2 CPUs, safe for realtime runs).\n\n"
           f"### The full table on N machines (projected)\n\n`{cmd}`: {len(cells)} Ray cells (a scenario "
           f"cell each, the suites' files in chunks of about --trials trials), {sum(cells) / 3600:.2f} h of "
-          f"trials as the committed store (docs/results-data) recorded them, plus {start:.1f} s of service "
-          f"start per cell and {ray_start:.0f} s of Ray start, both measured above. Machines of 2 cores, "
-          "one cell (2 CPUs) at a time each; cells to the first free machine in submission order. Lower "
-          "bound: the work spread evenly.\n\n"
-          + table(proj, ["machines", "projected wall (h)", "even spread (h)"])
-          + f"\n\nThe longest cell takes {max(per_cell) / 60:.1f} min: no number of machines finishes sooner.")
+          "trials as the committed store (docs/results-data) recorded them (measured two rows at a time on "
+          "2 cores, `--jobs 2`), plus each run's median cell start and its Ray start measured above "
+          f"({', '.join(f'{v:.1f} s' for v in starts.values())} per cell). Machines of 2 cores; cells go to "
+          "the first free slot in submission order; even spread: the work divided evenly, the lower bound.\n\n"
+          + table(list(proj.values()), ["machines", "--ray: projected wall (h)", "--ray: even spread (h)",
+                                        "--ray-cpus 1: projected wall (h)", "--ray-cpus 1: even spread (h)"])
+          + f"\n\nThe longest cell's trials take {max(cells) / 60:.1f} min: no number of machines finishes "
+          "sooner than that.")
     print(md)
     if not args.no_doc:
         argv = " ".join(sys.argv[sys.argv.index("bench"):]) if "bench" in sys.argv else "bench ray"

@@ -243,7 +243,7 @@ def run_tasks(args, tasks: list[tuple[Task, list]], write, total: int, initial: 
     pending = {remote.remote(t): (t, targets) for t, targets in tasks}
     failed: list[str] = []
     timing: list[list] = []  # per cell: tag, row, cells, trials, node, start_s, wall_s
-    bar = None if args.no_progress else tqdm(total=total, initial=initial, unit="trial", desc="table (ray)",
+    bar = None if args.no_progress else tqdm(total=total, initial=initial, unit="trial", desc="cells (ray)",
                                              dynamic_ncols=True)
     wall0 = time.monotonic()
     try:
