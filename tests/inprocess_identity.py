@@ -8,7 +8,9 @@ refactoring of the trial loops left behaviour unchanged (not a pytest test: it t
 For each driver: the paper-timed and conflict-timed scenarios in PyBullet, seeds 0..N-1 (each
 trial's success and contact, a sha256 of every trial's ego and obstacle paths), and N fast-world
 episodes of the suite's train split (selection seeds). The reference file was written at commit
-3a95a65, before the trial loops moved to evaluation/inprocess.py.
+3a95a65, before the trial loops moved to evaluation/inprocess.py (``--api
+racecav.training.select``), on the suite of ``racecav suite generate --name conflicts --n 14
+--n-train 80 --seed 0 --out DIR`` (``--suite DIR``).
 """
 
 from __future__ import annotations
