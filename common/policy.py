@@ -193,7 +193,7 @@ def export_policy(sb3_model, path: str | Path, metadata: dict[str, Any] | None =
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = policy_arrays_from_sb3(sb3_model)
     meta = dict(metadata or {})
-    if obs_rms is not None:  # the actor's inputs only (a critic may read more inputs than the actor)
+    if obs_rms is not None:  # the actor's inputs only (a privileged critic reads more: training/privileged.py)
         n_in = arrays["w0"].shape[0]
         arrays.update(obs_mean=np.asarray(obs_rms.mean, np.float64)[:n_in],
                       obs_var=np.asarray(obs_rms.var, np.float64)[:n_in],

@@ -321,7 +321,7 @@ def open_suite(name_or_dir: str | Path) -> Suite:
 
 def unfiltered(spec: str) -> str:
     """The suite a filtered suite was cut from (its suite.json's ``filtered_from``, written by
-    ``racecav train seen-filter`` at commit 3a95a65), else ``spec``: selection scores the whole source, never the
+    ``racecav train seen-filter``), else ``spec``: selection scores the whole source, never the
     filtered training mix."""
     try:
         return open_suite(spec).manifest.get("filtered_from", spec)

@@ -359,7 +359,7 @@ class FastWorld:
 
         :param actions: (N, 2) agent actions (a_T, a_delta), normalised.
         :param brake: (N,) bool or None: these agents brake (wheel speed target 0, as PyBullet's).
-        :param observe: False: no scans (obs None; a planner that reads the state).
+        :param observe: False: no scans (obs None; a planner that reads the state, training/expert.py).
         :return: obs (N, 170) float32; reward inputs (T (N,), a_delta clipped to [-1, 1] (N,));
             collided (N,) bool (agent touched a wall or a car during the step); info dict with
             ``wall`` / ``car`` contact flags and the number of obstacle respawns this step.
