@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from racecav.common.vehicle import load_toml
-from racecav.common.world import World, WorldFile, build_world, load_world
+from racecav.common.world import World, WorldFile, build_world, load_world, plot_world
 
 SCENARIOS_DIR = Path(__file__).parent / "data" / "scenarios"
 SUITES_RUNS_DIR = Path("runs/suites")
@@ -353,3 +353,40 @@ def scenario_sources(spec: str | Path, split: str = "train") -> list[tuple[Path,
 def scenario_files(spec: str | Path, split: str = "train") -> list[Path]:
     """The files of ``scenario_sources(spec, split)``."""
     return [f for f, _fam in scenario_sources(spec, split)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m racecav.common.scenario OUT.png [WORLD...]``: plot worlds with the start poses of the
+    scenarios played in them (docs/world.md figure; here, not in world.py, which scenarios import)."""
+    import sys
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    args = sys.argv[1:] if argv is None else argv
+    if not args:
+        print("usage: python -m racecav.common.scenario OUT.png [WORLD ...]")
+        return 2
+    names = args[1:] or ["racetrack", "figure8", "intersection"]
+    fig, axes = plt.subplots(1, len(names), figsize=(7 * len(names), 5))
+    for ax, name in zip(np.atleast_1d(axes), names):
+        plot_world(load_world(name), ax)
+        # the start poses of the scenarios played in this world (ego green, obstacles red)
+        for sc in (load_scenario(n) for n in scenario_names()):
+            if sc.world != name or sc.ego is None:
+                continue
+            for pose, color, label in [((sc.ego.x, sc.ego.y, sc.ego.yaw_deg), "g", "ego"),
+                                       *(((o.x, o.y, o.yaw_deg), "r", sc.name) for o in sc.obstacles)]:
+                x, y, yaw = pose[0], pose[1], math.radians(pose[2])
+                ax.annotate("", xy=(x + math.cos(yaw), y + math.sin(yaw)), xytext=(x, y),
+                            arrowprops=dict(arrowstyle="->", color=color, lw=2))
+                ax.text(x + 0.2, y + 0.3, label, color=color, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args[0], dpi=90)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
