@@ -1,0 +1,520 @@
+"""A teacher that knows no family: predict every car, try a few manoeuvres, take the first clear one.
+
+Every control step it reads the fast world's privileged state (training only; the policy it
+teaches sees only its scans):
+
+- every scenario actor's pose, speed, path and scripted speed changes (sim/actors.py), predicted
+  HORIZON_S ahead along its path at its current speed, the speed changes applied. An actor that
+  has not started stays where it is: no driver can know when a parked car will pull out;
+- the ego's road (the straight road or way of the scenario's world that the ego starts on, its
+  width; :func:`ego_road`), predicted under each manoeuvre of a small set: on at full throttle,
+  at 1.6 / 0.9 / 0.4 m/s, stop, in its lane; or a shift to either side (SHIFTS_M, wider where the
+  road allows) at full throttle or 0.9 m/s.
+
+It takes the first manoeuvre, in a preference order, whose predicted footprint (two circles per
+car) keeps MARGIN_M from every actor's over the horizon:
+
+- on at full throttle whenever that is clear: on a free road it drives off at once, and a stop
+  ends as soon as going on is clear;
+- else, for the car the full-throttle plan meets first: a crossing car (or one ahead going the
+  ego's way faster than CRAWL_V): slow down or yield first, steer round second; a car standing in
+  the way, coming at the ego along its road, or crawling ahead slower than CRAWL_V: steer round
+  first;
+- when none is clear, the one whose first contact comes latest (then the widest clearance).
+
+The steering label is a pure pursuit (LOOKAHEAD_M) of the chosen manoeuvre's predicted path, not
+of its final offset (which steers back into a car standing beside the ego). Labels are in the
+shipped avoid's action space: throttle, the brake below ``BRAKE_BELOW``, steering.
+
+``python -m racecav.training.predictive_teacher --suite roads --splits test,ood,controls`` drives
+it by its own labels in the fast world, per family and split, beside both non-evading references
+on the same seeds (docs/teacher.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from racecav.common.vehicle import brake_from_action, throttle_for_speed, wheel_speed_step
+
+HORIZON_S = 2.5     # s of prediction
+DT = 0.1            # s between predicted poses
+MARGIN_M = 0.12     # m kept between predicted footprints (circles)
+SPEEDS = (1.6, 0.9, 0.4)  # m/s of the slow-down manoeuvres, in their order
+SHIFTS_M = (0.45, 0.7, 0.95, math.inf)  # m to either side, clipped to the road (inf: as far as
+                                         # it allows); the first that is clear wins: the smallest
+DODGE_SPEEDS = (None, 0.9)  # a shift at full throttle, then at 0.9 m/s
+CURB_M = 0.1        # m the ego's side keeps from the curb in a shift
+CRAWL_V = 0.9       # m/s: a car ahead going the ego's way slower than this is passed, not followed
+STILL_V = 0.05      # m/s: a car slower than this stands
+ALONG_SIN = 0.5     # |sin| of a car's heading off the ego's road below which it drives along it
+LOOKAHEAD_M = 0.9   # m of pure pursuit along the chosen path
+PATH_DS = 0.05      # m between points of a manoeuvre's path
+HEADING_MAX = 0.8   # rad, the largest heading off the road in a shift
+LATERAL_GAIN = 1.5  # rad of heading per m of lateral error
+CURVATURE_MAX = 0.7  # 1/m the predicted path turns at most (the car's 0.8, less for the servo's lag)
+SLACK_V = 0.15      # m/s above a manoeuvre's speed before its label brakes
+BRAKE_BELOW = -0.5  # the shipped avoid's brake (EnvConfig.brake_below)
+SELECTION_SEED = 1000  # the probe's seeds; the table's test trials use seeds from 0
+
+
+@dataclass(frozen=True)
+class Road:
+    """The ego's road: a point on its centre line, its heading (the ego's direction), its width
+    and the lateral offset (m, left positive) of the ego's lane centre."""
+
+    x: float
+    y: float
+    yaw: float
+    width: float
+    lane: float
+
+
+def _straights(f) -> list[tuple[float, float, float, float, float]]:
+    """(cx, cy, yaw, length, width) of a world file's straight roads and of every way's first
+    straight piece (the ego starts on a straight)."""
+    out = [(r.cx, r.cy, math.radians(r.yaw_deg), r.length, r.width) for r in f.roads]
+    for w in f.ways:
+        p = w.pieces[0]
+        if p.straight is not None:
+            h = math.radians(w.yaw_deg)
+            out.append((w.x + 0.5 * p.straight * math.cos(h), w.y + 0.5 * p.straight * math.sin(h), h,
+                        p.straight, w.width))
+    return out
+
+
+def ego_road(sc, x: float, y: float, yaw: float, world=None) -> Road:
+    """The road the ego starts on at (x, y, yaw): among the scenario world's straight roads (and
+    ways' first straights) the one that holds the point and runs within 30 deg of the heading,
+    the narrowest if several do (the junction's other road is wider there). A world without
+    roads (a loop) or an ego on none: a road along the start heading, the world's lane width."""
+    from racecav.common.vehicle import load_toml
+    from racecav.common.world import WORLDS_DIR, WorldFile
+
+    f = sc.map
+    if f is None and sc.world is not None:
+        try:
+            f = load_toml(sc.world, WORLDS_DIR, WorldFile, "world")
+        except ValueError:
+            f = None
+    best = None
+    for cx, cy, h, length, width in (_straights(f) if f is not None and f.kind == "roads" else []):
+        c, s = math.cos(h), math.sin(h)
+        along, lat = (x - cx) * c + (y - cy) * s, -(x - cx) * s + (y - cy) * c
+        if abs(along) > length / 2 or abs(lat) > width / 2 or abs(math.sin(yaw - h)) > ALONG_SIN:
+            continue
+        if math.cos(yaw - h) < 0:  # the road's heading the ego's way
+            h, lat = h + math.pi, -lat
+        if best is None or width < best.width:
+            best = Road(cx, cy, math.atan2(math.sin(h), math.cos(h)), width, lat)
+    if best is None:
+        width = float(world.lane_width) if world is not None else 2.0
+        best = Road(x, y, yaw, width, 0.0)
+    return best
+
+
+def path_poses(pts: np.ndarray, cum: np.ndarray, n_pts: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
+    """x, y, yaw at arc lengths ``s`` (N, A, T) on the actors' polylines ``pts`` (N, A, P, 2) with
+    arc lengths ``cum`` (N, A, P) and ``n_pts`` (N, A) points (straight on past the last): the
+    same rule as ActorBatch._poses, for many times at once."""
+    k = np.clip((cum[:, :, None, :] <= s[..., None]).sum(-1) - 1, 0, n_pts[:, :, None] - 2)
+    a = np.take_along_axis(pts, k[..., None].repeat(2, -1), 2)
+    b = np.take_along_axis(pts, (k + 1)[..., None].repeat(2, -1), 2)
+    c0 = np.take_along_axis(cum, k, 2)
+    d = b - a
+    seg = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-12)
+    u = ((s - c0) / seg)[..., None]
+    p = a + d * u
+    return p[..., 0], p[..., 1], np.arctan2(d[..., 1], d[..., 0])
+
+
+def predict_actors(acts, steps: int, dt: float = DT, nominal: bool = False) -> tuple[np.ndarray, ...]:
+    """x, y, yaw, speed (N, A, steps + 1) of every actor now and every ``dt`` after: along its path at
+    its current speed, its scripted speed changes applied (as ActorBatch.advance); an actor not
+    started stays put. ``nominal``: a synchronised actor not yet released at its nominal speed
+    instead (the speed it goes on at once it stops waiting for the ego)."""
+    s, v = acts.s.copy(), acts.v.copy()
+    if nominal:
+        v = np.where(acts.sync & ~acts.released & acts.started, acts.v0, v)
+    go = acts.used & acts.started
+    out, speeds = [s.copy()], [v * go]
+    for _ in range(steps):
+        passed = s[..., None] >= acts.chg_at
+        has = passed.any(-1) & go
+        if has.any():
+            idx = np.maximum(np.where(passed, np.arange(acts.max_changes), -1).max(-1), 0)[..., None]
+            tgt = np.take_along_axis(acts.chg_v, idx, -1)[..., 0]
+            acc = np.take_along_axis(acts.chg_acc, idx, -1)[..., 0]
+            v = np.where(has, v + np.clip(tgt - v, -acc * dt, acc * dt), v)
+        s = np.where(go, s + v * dt, s)
+        out.append(s.copy())
+        speeds.append(v * go)
+    x, y, yaw = path_poses(acts.pts, acts.cum, acts.n_pts, np.stack(out, -1))
+    used = acts.used[..., None]
+    return np.where(used, x, 1e6), np.where(used, y, 1e6), yaw, np.stack(speeds, -1)
+
+
+class PredictiveTeacher:
+    """Labels for every world of a scenario FastWorld (read, never changed).
+
+    :param world: a FastWorld with scenarios (``world.actors``).
+    :param horizon_s: prediction horizon (s).
+    :param margin_m: clearance kept between the predicted footprints (m).
+    """
+
+    def __init__(self, world, horizon_s: float = HORIZON_S, margin_m: float = MARGIN_M):
+        if world.actors is None:
+            raise ValueError("the predictive teacher needs a scenario world (its actors' paths)")
+        self.w = world
+        self.car = car = world.car
+        self.steps = int(round(horizon_s / DT))
+        self.margin = margin_m
+        self.v_full = car.v_max * world.agent_speed_scale
+        # the footprint: two circles on the car's axis, a quarter length either side of its centre
+        self.c_off = car.length / 4
+        self.c_r = math.hypot(car.length / 4, car.width / 2)
+        self._roads: dict[tuple[int, tuple], Road] = {}
+        self.choice = np.zeros(world.n_envs, np.int64)
+        """(N,) the manoeuvre each world's last label follows (an index into ``names``)."""
+        self.names: list[str] = []
+
+    def road(self, n: int) -> Road:
+        """World ``n``'s ego road (per scenario and start; cached)."""
+        w = self.w
+        key = (int(w.scenario_index[n]), tuple(np.round(w.start_pose[n], 3)))
+        if key not in self._roads:
+            sc = w.scenarios[key[0]]
+            self._roads[key] = ego_road(sc, *w.start_pose[n], world=w.world)
+        return self._roads[key]
+
+    # ------------------------------------------------------------------ manoeuvres
+    def manoeuvres(self, roads: list[Road]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(speed (M,), lateral target (N, M), shift (M,) bool) of the manoeuvres: in the lane at
+        full throttle (inf), each of SPEEDS, stop (0); then each shift to the left and to the
+        right at each of DODGE_SPEEDS, clipped to the road (so on a narrow road the far side's
+        shifts are wider than the near side's)."""
+        lane = np.array([r.lane for r in roads])
+        room = np.array([r.width / 2 - self.car.width / 2 - CURB_M for r in roads])
+        speeds, lat, names = [np.inf, *SPEEDS, 0.0], [lane] * (len(SPEEDS) + 2), ["full", *map(str, SPEEDS), "stop"]
+        for v in DODGE_SPEEDS:
+            for side, tag in ((1.0, "left"), (-1.0, "right")):
+                for d in SHIFTS_M:
+                    speeds.append(np.inf if v is None else v)
+                    lat.append(np.clip(lane + side * d, -room, room))
+                    names.append(f"{tag} {'max' if np.isinf(d) else d} @{'full' if v is None else v}")
+        self.names = names
+        return np.array(speeds), np.stack(lat, 1), np.array(["@" in n for n in names])
+
+    def _paths(self, l0, psi0, lat_t, n_pts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each manoeuvre's path (N, M, n_pts) in the road frame from the ego: along (from 0),
+        lateral, heading off the road; every PATH_DS of arc: the heading turns towards the lateral
+        target at most CURVATURE_MAX per metre and at most HEADING_MAX off the road."""
+        N, M = lat_t.shape
+        s, l, psi = np.zeros((N, M)), np.broadcast_to(l0[:, None], (N, M)).copy(), np.broadcast_to(psi0[:, None], (N, M)).copy()
+        S, L, P = [s], [l], [psi]
+        turn = CURVATURE_MAX * PATH_DS
+        for _ in range(n_pts - 1):
+            want = np.clip(LATERAL_GAIN * (lat_t - l), -HEADING_MAX, HEADING_MAX)
+            psi = psi + np.clip(want - psi, -turn, turn)
+            s = s + PATH_DS * np.cos(psi)
+            l = l + PATH_DS * np.sin(psi)
+            S.append(s)
+            L.append(l)
+            P.append(psi)
+        return np.stack(S, -1), np.stack(L, -1), np.stack(P, -1)
+
+    def _speeds(self, v0: np.ndarray, w0: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """(N, M, steps + 1) distance driven under each manoeuvre's throttle or brake label (the
+        friction model of the wheels; the brake at the car's braking deceleration)."""
+        car, w = self.car, self.w
+        scale = car.wheel_radius * w.agent_speed_scale
+        thr = np.where(np.isinf(speed), 1.0, throttle_for_speed(np.where(np.isinf(speed), 0.0, speed), car, w.agent_speed_scale))
+        N, M = len(v0), len(speed)
+        v = np.broadcast_to(v0[:, None], (N, M)).copy()
+        wh = np.broadcast_to(w0[:, None], (N, M)).copy()
+        d = np.zeros((N, M))
+        out = [d]
+        sub = w.substeps
+        dt = DT / sub
+        for _ in range(self.steps):
+            for _k in range(sub):
+                brake = v > speed + SLACK_V
+                wh = np.where(brake, np.maximum(v - w.brake_decel * dt, 0.0) / scale,
+                              wheel_speed_step(wh, thr[None, :], dt, car))
+                v_new = wh * scale
+                d = d + 0.5 * (v + v_new) * dt
+                v = v_new
+            out.append(d)
+        return np.stack(out, -1)
+
+    # ------------------------------------------------------------------ labels
+    def labels(self) -> np.ndarray:
+        """(N, 2) a_T, a_delta for every world's current state."""
+        w, car = self.w, self.car
+        N = w.n_envs
+        roads = [self.road(n) for n in range(N)]
+        rx, ry, ryaw = (np.array([getattr(r, k) for r in roads]) for k in ("x", "y", "yaw"))
+        c, s = np.cos(ryaw), np.sin(ryaw)
+        ex, ey, eyaw, ev = w.x[:, 0], w.y[:, 0], w.yaw[:, 0], w.v[:, 0]
+        e_s = (ex - rx) * c + (ey - ry) * s
+        e_l = -(ex - rx) * s + (ey - ry) * c
+        psi0 = np.angle(np.exp(1j * (eyaw - ryaw)))
+        speed, lat_t, shift = self.manoeuvres(roads)
+        M = len(speed)
+        # the ego: distance driven over time under each manoeuvre, its path by distance
+        dist = self._speeds(ev, w.w[:, 0], speed)  # (N, M, T)
+        n_pts = int(math.ceil(max(dist.max(), LOOKAHEAD_M) / PATH_DS)) + 2
+        ps, pl, pp = self._paths(e_l, psi0, lat_t, n_pts)
+        k = np.clip(dist / PATH_DS, 0, n_pts - 1.001)
+        i0 = k.astype(np.int64)
+        f = k - i0
+
+        def at(a):
+            return np.take_along_axis(a, i0, 2) * (1 - f) + np.take_along_axis(a, i0 + 1, 2) * f
+
+        gs, gl, gp = at(ps) + e_s[:, None, None], at(pl), at(pp)
+        gx = rx[:, None, None] + gs * c[:, None, None] - gl * s[:, None, None]
+        gy = ry[:, None, None] + gs * s[:, None, None] + gl * c[:, None, None]
+        gyaw = ryaw[:, None, None] + gp
+        # the actors
+        # the actors, twice: at their speeds, and a car that has slowed for the ego at its own speed
+        # again (it may go on any time: a yield ends when it has passed, not when it crawls)
+        A = w.actors.n_actors
+        ax, ay, ayaw, av = (np.concatenate(z, 1) for z in zip(predict_actors(w.actors, self.steps),
+                                                          predict_actors(w.actors, self.steps, nominal=True)))
+        clear = self._clearance(gx, gy, gyaw, ax, ay, ayaw)  # (N, M, A, T)
+        hit = clear < self.margin
+        ok = ~hit.any((2, 3))  # (N, M)
+        # the order: which car does the full-throttle plan meet first, and is it one to steer round?
+        first_t = np.where(hit[:, 0].any(-1), hit[:, 0].argmax(-1), 10**6)  # (N, A)
+        who = first_t.argmin(-1)
+        t_meet = np.minimum(first_t[np.arange(N), who], self.steps)
+        v_meet = av[np.arange(N), who, t_meet]  # its predicted speed when they would meet
+        steer_first, standing = self._steer_first(who % A, ryaw, v_meet)
+        order_slow = [0, *range(1, len(SPEEDS) + 2), *np.flatnonzero(shift)]
+        order_steer = [0, *np.flatnonzero(shift), *range(1, len(SPEEDS) + 2)]
+        # fallback: the manoeuvre whose first contact comes latest, then the widest clearance
+        t_hit = np.where(hit.any(2).any(-1), hit.any(2).argmax(-1), 10**6)
+        worst = np.where(np.isfinite(clear), clear, 1e3).min((2, 3))
+        fallback = self._latest(t_hit, worst)
+        self.debug = dict(ok=ok, t_hit=t_hit, worst=worst, steer_first=steer_first)
+        # a stop lasts until going on (or steering round) is clear: no creeping up on a car that
+        # waits for the ego (it would wait as long as the ego creeps)
+        stop = len(SPEEDS) + 1
+        order_stopped = [0, *np.flatnonzero(shift & np.isinf(speed)), stop]
+        order_stopped_standing = [0, *np.flatnonzero(shift), stop]  # round a standing car at any speed
+        stopped = (self.choice == stop) & (w.time > 1e-9)
+        choice = np.empty(N, np.int64)
+        for n in range(N):
+            if stopped[n]:
+                order = order_stopped_standing if standing[n] else order_stopped
+            else:
+                order = order_steer if steer_first[n] else order_slow
+            good = [m for m in order if ok[n, m]]
+            choice[n] = good[0] if good else fallback[n]
+        self.choice = choice
+        # throttle: full, a speed's throttle (brake above it), or the brake
+        sp = speed[choice]
+        thr = np.where(np.isinf(sp), 1.0, throttle_for_speed(np.where(np.isinf(sp), 0.0, sp), car, w.agent_speed_scale))
+        thr = np.where((sp == 0.0) | (ev > sp + SLACK_V), -1.0, thr)
+        # steering: pure pursuit of the chosen path LOOKAHEAD_M ahead (by arc)
+        j = min(int(round(LOOKAHEAD_M / PATH_DS)), n_pts - 1)
+        idx = np.arange(N)
+        dx_r, dy_r = ps[idx, choice, j], pl[idx, choice, j] - e_l
+        # into the ego's frame (road frame rotated by its heading off the road)
+        cp, sp_ = np.cos(psi0), np.sin(psi0)
+        lx, ly = dx_r * cp + dy_r * sp_, -dx_r * sp_ + dy_r * cp
+        alpha = np.arctan2(ly, lx)
+        ld = np.maximum(np.hypot(lx, ly), 1e-3)
+        delta = np.arctan(2.0 * car.wheelbase * np.sin(alpha) / ld)
+        steer = np.clip(delta, car.delta_min, car.delta_max) / car.steer_gain
+        return np.stack([thr, steer], 1).astype(np.float32)
+
+    @staticmethod
+    def _latest(t_hit: np.ndarray, worst: np.ndarray) -> np.ndarray:
+        key = t_hit * 1e4 + np.clip(worst, -1e3, 1e3)
+        return key.argmax(1)
+
+    def _clearance(self, gx, gy, gyaw, ax, ay, ayaw) -> np.ndarray:
+        """(N, M, A, T) the smallest distance between the ego's and each actor's circles, minus
+        both radii."""
+        o = self.c_off
+        e = np.stack([np.stack([gx + sg * o * np.cos(gyaw), gy + sg * o * np.sin(gyaw)], -1) for sg in (-1, 1)], -2)
+        a = np.stack([np.stack([ax + sg * o * np.cos(ayaw), ay + sg * o * np.sin(ayaw)], -1) for sg in (-1, 1)], -2)
+        # e (N, M, T, 2, 2) vs a (N, A, T, 2, 2) -> (N, M, A, T, 2, 2)
+        d = e[:, :, None, :, :, None, :] - a[:, None, :, :, None, :, :]
+        dist = np.sqrt((d * d).sum(-1)).min((-1, -2))
+        return dist - 2 * self.c_r
+
+    def _steer_first(self, who: np.ndarray, ryaw: np.ndarray, v_meet: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(steer first, standing) (N,): the car the full-throttle plan meets first is one to steer
+        round: standing where they would meet (``v_meet``, its predicted speed then), coming at the
+        ego along its road, or going its way slower than CRAWL_V."""
+        w = self.w
+        idx = np.arange(w.n_envs)
+        v = w.actors.v[idx, who] * w.actors.started[idx, who]
+        rel = w.actors.yaw[idx, who] - ryaw
+        along = np.abs(np.sin(rel)) < ALONG_SIN
+        standing = (v_meet < STILL_V) | (v < STILL_V)
+        coming = along & (np.cos(rel) < 0)
+        crawling = along & (np.cos(rel) > 0) & (v < CRAWL_V)
+        return standing | coming | crawling, standing
+
+
+# ---------------------------------------------------------------------------------- the probe
+def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dict[str, np.ndarray]:
+    """Drive ``trials`` trials of each scenario (one FastWorld per scenario, seed ``seed + k``
+    for the k-th) by ``driver``: "teacher" (its own labels), "straight" (1 m/s) or "full"
+    (full throttle), both references straight along the start heading.
+
+    :return: per trial (scenarios x trials, flattened): success, collided, frozen (no contact
+        but short of the route at the end), from_rest (the ego started standing), drive_off (s
+        until it first exceeded 0.2 m/s; nan if never).
+    """
+    from racecav.common.vehicle import load_car
+    from racecav.sim.fast_world import FastWorld
+    from racecav.training.expert import tracking_steer
+
+    car = car or load_car()
+    keys = ("success", "collided", "frozen", "from_rest", "drive_off")
+    out: dict[str, list] = {k: [] for k in keys}
+    for k, sc in enumerate(scenarios):
+        fw = FastWorld(n_envs=trials, scenarios=[sc], car=car, seed=seed + k)
+        fw.observe[:] = False  # nothing here reads a scan
+        fw.reset()
+        teacher = PredictiveTeacher(fw) if driver == "teacher" else None
+        thr = 1.0 if driver == "full" else float(throttle_for_speed(1.0, car, fw.agent_speed_scale))
+        hit = np.zeros(trials, bool)
+        live = np.ones(trials, bool)
+        rest = fw.v[:, 0] < STILL_V
+        off = np.full(trials, np.nan)
+        while live.any():
+            if teacher is not None:
+                a = teacher.labels().astype(np.float64)
+            else:
+                a = np.stack([np.full(trials, thr), tracking_steer(fw)], 1)
+            a[~live] = 0.0
+            fw.step(a, brake=brake_from_action(a[:, 0], BRAKE_BELOW) & live, observe=False)
+            hit |= fw.collided & live
+            moving = live & np.isnan(off) & (fw.v[:, 0] > 0.2)
+            off[moving] = fw.time[moving]
+            live &= ~hit & (fw.time < fw.time_limit - 1e-9)
+        ok = fw.success() & ~hit
+        out["success"].append(ok)
+        out["collided"].append(hit)
+        out["frozen"].append(~ok & ~hit)
+        out["from_rest"].append(rest)
+        out["drive_off"].append(off)
+    return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
+
+
+DRIVERS = {"teacher": "predictive teacher", "straight": "straight 1 m/s", "full": "full throttle"}
+
+
+def probe(suite: str, splits: list[str], trials: int, seed: int, families: list[str] | None = None,
+          progress: bool = True) -> dict:
+    """{split: {family: {driver: measures}}} of :func:`drive` on the files of a suite's splits."""
+    from tqdm import tqdm
+
+    from racecav.common.scenario import load_scenario, open_suite
+
+    s = open_suite(suite)
+    res: dict = {}
+    jobs = []
+    for split in splits:
+        if split not in s.manifest["splits"]:
+            raise ValueError(f"--splits: suite {suite} has no split {split!r} (has {', '.join(s.manifest['splits'])})")
+        by_fam: dict[str, list] = {}
+        for f, fam in s.files(split):
+            if families is None or fam in families:
+                by_fam.setdefault(fam, []).append(f)
+        for fam, files in by_fam.items():
+            jobs.append((split, fam, files))
+    bar = tqdm(total=sum(len(j[2]) for j in jobs) * len(DRIVERS), desc="teacher probe", unit="file",
+               disable=not progress)
+    for split, fam, files in jobs:
+        scs = [load_scenario(f) for f in files]
+        # the same seeds for every driver: the same trials
+        base = seed + 1009 * (sorted(s.manifest["splits"]).index(split) + 1)
+        for d in DRIVERS:
+            res.setdefault(split, {}).setdefault(fam, {})[d] = drive(scs, trials, base, d)
+            bar.update(len(files))
+    bar.close()
+    return res
+
+
+def _pct(x: np.ndarray) -> str:
+    return f"{100 * x.mean():.0f}" if len(x) else "-"
+
+
+def report(res: dict, command: str, controls: set[str] = frozenset()) -> str:
+    """The markdown of docs/teacher.md."""
+    lines = ["# The predictive teacher, driven by its own labels", "",
+             "Generated by `" + command + "` (training/predictive_teacher.py). Fast world, selection seeds "
+             f"(from {SELECTION_SEED}; the table's test trials use seeds from 0), the same trials for every driver. "
+             "Success: no contact and the route's progress; collisions: any contact; frozen: no contact but "
+             "short of the route when the trial's time ran out; drive-off: time until the ego first exceeds "
+             "0.2 m/s, over the trials that start at rest. The references drive straight along their start "
+             "heading at 1 m/s or at full throttle.", ""]
+    lines += ["## Per split (mean over families)", "",
+              "| split | trials | teacher success % | collisions % | frozen % | straight 1 m/s % | full throttle % | drive-off from rest (median / max s, trials) |",
+              "|---|---:|---:|---:|---:|---:|---:|---|"]
+    for split, fams in res.items():
+        def fam_mean(d, key):
+            return f"{100 * np.mean([fams[f][d][key].mean() for f in fams]):.0f}"
+        n = sum(len(fams[f]["teacher"]["success"]) for f in fams)
+        rest = np.concatenate([fams[f]["teacher"]["drive_off"][fams[f]["teacher"]["from_rest"]] for f in fams])
+        off = (f"{np.nanmedian(rest):.1f} / {np.nanmax(rest):.1f} ({len(rest)}, never: {int(np.isnan(rest).sum())})"
+               if len(rest) and not np.isnan(rest).all() else ("never" if len(rest) else "-"))
+        lines.append(f"| {split} | {n} | {fam_mean('teacher', 'success')} | {fam_mean('teacher', 'collided')} | "
+                     f"{fam_mean('teacher', 'frozen')} | {fam_mean('straight', 'success')} | {fam_mean('full', 'success')} | {off} |")
+    for split, fams in res.items():
+        lines += ["", f"## {split}", "",
+                  "| family | trials | teacher success % | collisions % | frozen % | straight 1 m/s % (coll.) | full throttle % (coll.) |",
+                  "|---|---:|---:|---:|---:|---:|---:|"]
+        for fam in sorted(fams):
+            t, a, b = (fams[fam][d] for d in DRIVERS)
+            lines.append(f"| {fam} | {len(t['success'])} | {_pct(t['success'])} | {_pct(t['collided'])} | "
+                         f"{_pct(t['frozen'])} | {_pct(a['success'])} ({_pct(a['collided'])}) | "
+                         f"{_pct(b['success'])} ({_pct(b['collided'])}) |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m racecav.training.predictive_teacher",
+                                description="the predictive teacher driven by its own labels in the fast world, per "
+                                            "family and split, beside both non-evading references on the same seeds")
+    p.add_argument("--suite", default="roads", help="suite NAME (runs/suites/NAME) or folder with suite.json")
+    p.add_argument("--splits", default="test,ood,controls", help="comma-separated splits")
+    p.add_argument("--trials", type=int, default=2, help="trials per file")
+    p.add_argument("--seed", type=int, default=SELECTION_SEED)
+    p.add_argument("--families", default="", help="only these families (comma-separated; default all)")
+    p.add_argument("--out", help="write the markdown here (else print it)")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    if args.trials < 1:
+        print("--trials: must be >= 1", file=sys.stderr)
+        return 2
+    splits = [x.strip() for x in args.splits.split(",") if x.strip()]
+    fams = [x.strip() for x in args.families.split(",") if x.strip()] or None
+    try:
+        res = probe(args.suite, splits, args.trials, args.seed, fams, progress=not args.no_progress)
+    except ValueError as e:
+        print(str(e), file=sys.stderr)
+        return 2
+    cmd = "python -m racecav.training.predictive_teacher " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = report(res, cmd.strip())
+    if args.out:
+        Path(args.out).write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
