@@ -22,7 +22,7 @@ car) keeps MARGIN_M from every actor's over the horizon:
   first;
 - when none is clear, the one whose first contact comes latest (then the widest clearance).
 
-The steering label is a pure pursuit (LOOKAHEAD_M) of the chosen manoeuvre's predicted path, not
+The steering label is a pure pursuit (LOOKAHEAD_M, longer at speed) of the chosen manoeuvre's predicted path, not
 of its final offset (which steers back into a car standing beside the ego). Labels are in the
 shipped avoid's action space: throttle, the brake below ``BRAKE_BELOW``, steering.
 
@@ -54,10 +54,12 @@ CURB_M = 0.1        # m the ego's side keeps from the curb in a shift
 CRAWL_V = 0.9       # m/s: a car ahead going the ego's way slower than this is passed, not followed
 STILL_V = 0.05      # m/s: a car slower than this stands
 ALONG_SIN = 0.5     # |sin| of a car's heading off the ego's road below which it drives along it
-LOOKAHEAD_M = 0.9   # m of pure pursuit along the chosen path
+LOOKAHEAD_M = 0.9   # m of pure pursuit along the chosen path ...
+LOOKAHEAD_S = 0.6   # ... or this many seconds of the ego's speed, if longer (no weave at speed)
 PATH_DS = 0.05      # m between points of a manoeuvre's path
-HEADING_MAX = 0.8   # rad, the largest heading off the road in a shift
-LATERAL_GAIN = 1.5  # rad of heading per m of lateral error
+HEADING_MAX = (0.45, 0.8)  # rad, the largest heading off the road in a shift at full throttle, slower
+HEADING_SLOW_V = 1.0  # m/s: a manoeuvre up to this speed may take the larger heading
+LATERAL_GAIN = 1.2  # rad of heading per m of lateral error
 CURVATURE_MAX = 0.7  # 1/m the predicted path turns at most (the car's 0.8, less for the servo's lag)
 SLACK_V = 0.15      # m/s above a manoeuvre's speed before its label brakes
 BRAKE_BELOW = -0.5  # the shipped avoid's brake (EnvConfig.brake_below)
@@ -129,8 +131,8 @@ def path_poses(pts: np.ndarray, cum: np.ndarray, n_pts: np.ndarray, s: np.ndarra
     c0 = np.take_along_axis(cum, k, 2)
     d = b - a
     seg = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-12)
-    u = ((s - c0) / seg)[..., None]
-    p = a + d * u
+    with np.errstate(invalid="ignore"):  # unused slots (no path): replaced by the caller
+        p = a + d * ((s - c0) / seg)[..., None]
     return p[..., 0], p[..., 1], np.arctan2(d[..., 1], d[..., 0])
 
 
@@ -211,16 +213,16 @@ class PredictiveTeacher:
         self.names = names
         return np.array(speeds), np.stack(lat, 1), np.array(["@" in n for n in names])
 
-    def _paths(self, l0, psi0, lat_t, n_pts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _paths(self, l0, psi0, lat_t, n_pts: int, psi_max: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each manoeuvre's path (N, M, n_pts) in the road frame from the ego: along (from 0),
         lateral, heading off the road; every PATH_DS of arc: the heading turns towards the lateral
-        target at most CURVATURE_MAX per metre and at most HEADING_MAX off the road."""
+        target at most CURVATURE_MAX per metre and at most ``psi_max`` (M,) off the road."""
         N, M = lat_t.shape
         s, l, psi = np.zeros((N, M)), np.broadcast_to(l0[:, None], (N, M)).copy(), np.broadcast_to(psi0[:, None], (N, M)).copy()
         S, L, P = [s], [l], [psi]
         turn = CURVATURE_MAX * PATH_DS
         for _ in range(n_pts - 1):
-            want = np.clip(LATERAL_GAIN * (lat_t - l), -HEADING_MAX, HEADING_MAX)
+            want = np.clip(LATERAL_GAIN * (lat_t - l), -psi_max, psi_max)
             psi = psi + np.clip(want - psi, -turn, turn)
             s = s + PATH_DS * np.cos(psi)
             l = l + PATH_DS * np.sin(psi)
@@ -269,8 +271,10 @@ class PredictiveTeacher:
         M = len(speed)
         # the ego: distance driven over time under each manoeuvre, its path by distance
         dist = self._speeds(ev, w.w[:, 0], speed)  # (N, M, T)
-        n_pts = int(math.ceil(max(dist.max(), LOOKAHEAD_M) / PATH_DS)) + 2
-        ps, pl, pp = self._paths(e_l, psi0, lat_t, n_pts)
+        look = np.maximum(LOOKAHEAD_M, LOOKAHEAD_S * ev)
+        n_pts = int(math.ceil(max(dist.max(), look.max()) / PATH_DS)) + 2
+        psi_max = np.where(speed <= HEADING_SLOW_V, HEADING_MAX[1], HEADING_MAX[0])
+        ps, pl, pp = self._paths(e_l, psi0, lat_t, n_pts, psi_max)
         k = np.clip(dist / PATH_DS, 0, n_pts - 1.001)
         i0 = k.astype(np.int64)
         f = k - i0
@@ -291,6 +295,7 @@ class PredictiveTeacher:
         clear = self._clearance(gx, gy, gyaw, ax, ay, ayaw)  # (N, M, A, T)
         hit = clear < self.margin
         ok = ~hit.any((2, 3))  # (N, M)
+        touch_free = (clear > 0).all((2, 3))
         # the order: which car does the full-throttle plan meet first, and is it one to steer round?
         first_t = np.where(hit[:, 0].any(-1), hit[:, 0].argmax(-1), 10**6)  # (N, A)
         who = first_t.argmin(-1)
@@ -316,15 +321,16 @@ class PredictiveTeacher:
                 order = order_stopped_standing if standing[n] else order_stopped
             else:
                 order = order_steer if steer_first[n] else order_slow
-            good = [m for m in order if ok[n, m]]
+            # the first clear one; else the first without contact; else the latest contact
+            good = [m for m in order if ok[n, m]] or [m for m in order if touch_free[n, m]]
             choice[n] = good[0] if good else fallback[n]
         self.choice = choice
         # throttle: full, a speed's throttle (brake above it), or the brake
         sp = speed[choice]
         thr = np.where(np.isinf(sp), 1.0, throttle_for_speed(np.where(np.isinf(sp), 0.0, sp), car, w.agent_speed_scale))
         thr = np.where((sp == 0.0) | (ev > sp + SLACK_V), -1.0, thr)
-        # steering: pure pursuit of the chosen path LOOKAHEAD_M ahead (by arc)
-        j = min(int(round(LOOKAHEAD_M / PATH_DS)), n_pts - 1)
+        # steering: pure pursuit of the chosen path ``look`` ahead (by arc)
+        j = np.minimum(np.rint(look / PATH_DS).astype(np.int64), n_pts - 1)
         idx = np.arange(N)
         dx_r, dy_r = ps[idx, choice, j], pl[idx, choice, j] - e_l
         # into the ego's frame (road frame rotated by its heading off the road)
@@ -375,14 +381,15 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
 
     :return: per trial (scenarios x trials, flattened): success, collided, frozen (no contact
         but short of the route at the end), from_rest (the ego started standing), drive_off (s
-        until it first exceeded 0.2 m/s; nan if never).
+        until it first exceeded 0.2 m/s; nan if never), done_at (s until it first had the route's
+        progress without contact; nan if never).
     """
     from racecav.common.vehicle import load_car
     from racecav.sim.fast_world import FastWorld
     from racecav.training.expert import tracking_steer
 
     car = car or load_car()
-    keys = ("success", "collided", "frozen", "from_rest", "drive_off")
+    keys = ("success", "collided", "frozen", "from_rest", "drive_off", "done_at")
     out: dict[str, list] = {k: [] for k in keys}
     for k, sc in enumerate(scenarios):
         fw = FastWorld(n_envs=trials, scenarios=[sc], car=car, seed=seed + k)
@@ -394,6 +401,7 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
         live = np.ones(trials, bool)
         rest = fw.v[:, 0] < STILL_V
         off = np.full(trials, np.nan)
+        done_at = np.full(trials, np.nan)
         while live.any():
             if teacher is not None:
                 a = teacher.labels().astype(np.float64)
@@ -404,6 +412,8 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
             hit |= fw.collided & live
             moving = live & np.isnan(off) & (fw.v[:, 0] > 0.2)
             off[moving] = fw.time[moving]
+            there = live & ~hit & np.isnan(done_at) & fw.success()
+            done_at[there] = fw.time[there]
             live &= ~hit & (fw.time < fw.time_limit - 1e-9)
         ok = fw.success() & ~hit
         out["success"].append(ok)
@@ -411,6 +421,7 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
         out["frozen"].append(~ok & ~hit)
         out["from_rest"].append(rest)
         out["drive_off"].append(off)
+        out["done_at"].append(done_at)
     return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
 
 

@@ -1,0 +1,55 @@
+"""The predictive teacher (training/predictive_teacher.py) driven by its own labels in the fast
+world, on validated draws of the roads generator (evaluation/benchmark.py): the draws of a
+conflict family make both non-evading references collide every time, by construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from racecav.common.scenario import load_scenario, open_suite
+from racecav.evaluation.benchmark import generate, load_benchmark
+from racecav.training.predictive_teacher import SELECTION_SEED, drive
+
+FAMILIES = ("from-rest", "stop-short", "rear-stationary", "rear-braking", "braking")
+TRIALS = 2
+
+
+@pytest.fixture(scope="module")
+def suite(tmp_path_factory):
+    bf = load_benchmark("roads")
+    bf = bf.model_copy(update={"families": [f for f in bf.families if f.name in FAMILIES]})
+    out = tmp_path_factory.mktemp("roads")
+    generate(bf, out, seed=0, splits=("test", "controls"), progress=False, n_test=2)
+    return open_suite(out)
+
+
+def scenarios(suite, split: str, family: str) -> list:
+    return [load_scenario(f) for f, fam in suite.files(split) if fam == family]
+
+
+def test_drives_off_from_rest_at_once(suite):
+    scs = scenarios(suite, "controls", "from-rest")
+    r = drive(scs, TRIALS, SELECTION_SEED, "teacher")
+    assert r["from_rest"].all()
+    assert (r["drive_off"] <= 1.0).all(), r["drive_off"]
+    assert r["success"].all()
+
+
+@pytest.mark.parametrize("family", ["rear-stationary", "rear-braking", "braking"])
+def test_passes_what_both_references_crash_into(suite, family):
+    scs = scenarios(suite, "test", family)
+    for ref in ("straight", "full"):
+        assert drive(scs, TRIALS, SELECTION_SEED, ref)["collided"].all(), ref
+    r = drive(scs, TRIALS, SELECTION_SEED, "teacher")
+    assert r["success"].all(), r
+
+
+def test_does_not_wait_for_a_car_that_stops_short(suite):
+    scs = scenarios(suite, "controls", "stop-short")
+    r = drive(scs, TRIALS, SELECTION_SEED, "teacher")
+    ref = drive(scs, TRIALS, SELECTION_SEED, "straight")
+    assert r["success"].all()
+    # through sooner than a car that drives on at 1 m/s: it never stopped to wait
+    assert (r["done_at"] < ref["done_at"]).all(), (r["done_at"], ref["done_at"])
+    assert np.isfinite(r["done_at"]).all()
