@@ -56,7 +56,8 @@ STILL_V = 0.05      # m/s: a car slower than this stands
 ALONG_SIN = 0.5     # |sin| of a car's heading off the ego's road below which it drives along it
 LOOKAHEAD_M = 0.9   # m of pure pursuit along the chosen path ...
 LOOKAHEAD_S = 0.6   # ... or this many seconds of the ego's speed, if longer (no weave at speed)
-PATH_DS = 0.05      # m between points of a manoeuvre's path
+PATH_DS = 0.1       # m between points of a manoeuvre's path
+SPEED_SUBSTEPS = 2  # Euler steps per DT of the predicted wheel speed
 HEADING_MAX = (0.45, 0.8)  # rad, the largest heading off the road in a shift at full throttle, slower
 HEADING_SLOW_V = 1.0  # m/s: a manoeuvre up to this speed may take the larger heading
 LATERAL_GAIN = 1.2  # rad of heading per m of lateral error
@@ -242,7 +243,7 @@ class PredictiveTeacher:
         wh = np.broadcast_to(w0[:, None], (N, M)).copy()
         d = np.zeros((N, M))
         out = [d]
-        sub = w.substeps
+        sub = SPEED_SUBSTEPS
         dt = DT / sub
         for _ in range(self.steps):
             for _k in range(sub):
