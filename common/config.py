@@ -400,6 +400,10 @@ class EnvConfig(Section):
     scenario files, or one file. None: traffic episodes only."""
     scenario_share: float = Field(0.0, ge=0, le=1)
     """Share of the batch's worlds that run scenario episodes (the rest: traffic episodes)."""
+    scenario_maps: int = Field(0, ge=0)
+    """Scenario episodes on at most this many maps (world geometries) at once, drawn from the
+    scenarios' maps and drawn again by ``FastVecEnv.resample_maps()`` (training/map_pool.py): a
+    generated suite has hundreds of maps, one fast world each. 0: every map at once."""
     curriculum: bool = False
     """Scenario episodes: draw files by family, each family weighted by its failure rate over
     its last 200 training episodes (at least 0.1), so training goes where the policy fails;

@@ -61,13 +61,20 @@ def env_car(settings: EnvConfig):
     return car.model_copy(update=update)
 
 
-def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None) -> list:
+def scenario_envs(settings: EnvConfig, n_envs: int) -> int:
+    """How many of a batch's ``n_envs`` worlds run scenario episodes."""
+    return int(round(settings.scenario_share * n_envs)) if settings.scenarios else 0
+
+
+def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, driver=None,
+                map_pool=None, map_rng=None) -> list:
     """The fast worlds of a batch of ``n_envs``: traffic worlds (``1 - scenario_share`` of
-    them), then scenario worlds grouped by world geometry (sized by their number of files)."""
+    them), then scenario worlds grouped by world geometry (sized by their number of files), or,
+    with ``map_pool`` (training/map_pool.MapPool), on the pool's maps drawn by ``map_rng``."""
     from racecav.common.scenario import load_scenario, scenario_sources
     from racecav.sim.fast_world import FastWorld
 
-    n_scen = int(round(settings.scenario_share * n_envs)) if settings.scenarios else 0
+    n_scen = scenario_envs(settings, n_envs)
     if settings.scenario_share > 0 and not settings.scenarios:
         raise ValueError("scenario_share: needs scenarios (a suite, folder or file)")
     worlds = []
@@ -75,7 +82,9 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
         w = make_world(settings, n_envs=n_envs - n_scen, seed=seed, driver=driver)
         w.time_limit[:] = settings.time_limit_s
         worlds.append(w)
-    if n_scen:
+    if n_scen and map_pool is not None:
+        worlds += map_pool.build(map_pool.draw(map_rng), seed)
+    elif n_scen:
         groups: dict[str, list] = {}
         families: dict[str, list[str]] = {}
         for f, family in scenario_sources(settings.scenarios, "train"):

@@ -24,7 +24,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 
 from racecav.common.config import EnvConfig
 from racecav.common.vehicle import brake_from_action
-from racecav.training.env import env_settings, make_worlds, reward
+from racecav.training.env import env_settings, make_worlds, reward, scenario_envs
 from racecav.training.flow_reward import flow_reward, flow_weights
 
 
@@ -102,8 +102,16 @@ class FastVecEnv(VecEnv):
                                      n_envs=n_envs, parallel=parallel, scenarios=scenarios,
                                      scenario_share=scenario_share, obs_stack=obs_stack,
                                      progress_reward=progress_reward, brake_below=brake_below)
-        # the batch: traffic worlds first, then one scenario world per scenario world geometry
-        self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj)
+        # the batch: traffic worlds first, then one scenario world per scenario world geometry (or
+        # per map drawn from a pool: EnvConfig.scenario_maps, training/map_pool.py)
+        self.map_pool, self.map_rng = None, np.random.default_rng(seed)
+        n_scen = scenario_envs(self.settings, self.settings.n_envs)
+        if self.settings.scenario_maps and n_scen:
+            from racecav.training.map_pool import MapPool
+
+            self.map_pool = MapPool(self.settings, n_scen)
+        self.worlds = make_worlds(self.settings, n_envs=self.settings.n_envs, seed=seed, driver=drv_obj,
+                                  map_pool=self.map_pool, map_rng=self.map_rng)
         self.world = self.worlds[0]
         n = sum(w.n_envs for w in self.worlds)
         spec = self.world.spec
@@ -214,6 +222,13 @@ class FastVecEnv(VecEnv):
             if self.curriculum is not None:
                 self.curriculum.update()
         return obs, rewards, dones, infos
+
+    def resample_maps(self, seed: int | None = None) -> None:
+        """Move the scenario worlds to other maps of the pool (EnvConfig.scenario_maps); cuts their
+        episodes: call it between rollouts (training/map_pool.py)."""
+        from racecav.training.map_pool import resample
+
+        resample(self, seed)
 
     def close(self) -> None:
         pass

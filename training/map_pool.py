@@ -1,0 +1,95 @@
+"""Scenario worlds drawn from a pool of maps (EnvConfig.scenario_maps).
+
+A FastWorld holds one world geometry, so the fast VecEnv builds one per map its scenarios use.
+The conflict suite has a handful of maps; a generated roads suite carries its own map in every
+file (its train split: hundreds). With ``scenario_maps = K`` the batch's scenario worlds are K
+FastWorlds of equal size, each on one map drawn from the pool (its files, with their families),
+and :meth:`FastVecEnv.resample_maps` draws K maps again: every few rollouts the batch moves to
+other roads. The maps are drawn without replacement and uniformly (a map with more files is not
+drawn more often; inside a map its files are drawn as before).
+
+Resampling cuts the episodes running in the scenario worlds (a new episode starts there, with no
+done flag): call it between rollouts of an imitation run (DAgger). A PPO run would need the cut
+reported as a truncation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class MapPool:
+    """The scenario files of ``settings.scenarios`` (train split) grouped by map.
+
+    :param settings: the EnvConfig (scenarios, scenario_maps, car, control period, parallel).
+    :param n_envs: the scenario worlds' envs in all (split evenly over the K maps).
+    """
+
+    def __init__(self, settings, n_envs: int):
+        from racecav.common.scenario import load_scenario, scenario_sources
+
+        self.settings = settings
+        self.groups: dict[str, tuple[list, list[str]]] = {}
+        for f, family in scenario_sources(settings.scenarios, "train"):
+            sc = load_scenario(f)
+            scs, fams = self.groups.setdefault(sc.world_key, ([], []))
+            scs.append(sc)
+            fams.append(family)
+        self.keys = list(self.groups)
+        self.k = min(int(settings.scenario_maps), len(self.keys))
+        if n_envs < self.k:
+            raise ValueError(f"scenario_maps: {self.k} maps need at least as many scenario envs (have {n_envs})")
+        base = n_envs // self.k
+        self.sizes = [base + (1 if i < n_envs - base * self.k else 0) for i in range(self.k)]
+
+    def draw(self, rng: np.random.Generator) -> list[str]:
+        """K distinct maps."""
+        return [self.keys[i] for i in rng.choice(len(self.keys), self.k, replace=False)]
+
+    def build(self, keys: list[str], seed: int | None) -> list:
+        """One FastWorld per map of ``keys``, sized by ``sizes``."""
+        from racecav.sim.fast_world import FastWorld
+        from racecav.training.env import env_car
+
+        st = self.settings
+        worlds = []
+        for i, (key, n) in enumerate(zip(keys, self.sizes)):
+            scs, fams = self.groups[key]
+            w = FastWorld(n_envs=n, scenarios=scs, car=env_car(st), control_period=st.control_period_s,
+                          seed=None if seed is None else seed + 7919 * (i + 1), parallel=st.parallel)
+            w.scenario_families = fams  # the curriculum's grouping (training/vec_env.py)
+            worlds.append(w)
+        return worlds
+
+
+def resample(venv, seed: int | None = None) -> None:
+    """Move a FastVecEnv's scenario worlds to K maps drawn afresh from its pool, reset them, and
+    rebuild what holds the old worlds (the curriculum keeps its history, by family)."""
+    pool: MapPool | None = getattr(venv, "map_pool", None)
+    if pool is None:
+        raise ValueError("resample_maps: the env has no map pool (set scenario_maps)")
+    rng = venv.map_rng if seed is None else np.random.default_rng(seed)
+    first = next(i for i, w in enumerate(venv.worlds) if w.actors is not None)
+    new = pool.build(pool.draw(rng), seed=int(rng.integers(2**31)))
+    venv.worlds[first:] = new
+    venv.world = venv.worlds[0]
+    for w, sl in zip(new, venv.slices[first:]):
+        obs = w.reset()
+        venv._stack[sl] = obs[:, None]
+        venv.a_prev[sl] = 0.0
+    cur = venv.curriculum
+    if cur is not None:
+        from racecav.training.vec_env import FamilyCurriculum
+
+        old = dict(zip(cur.names, cur.history))
+        venv.curriculum = FamilyCurriculum(venv.worlds, venv.settings.curriculum_boost)
+        for name, h in zip(venv.curriculum.names, venv.curriculum.history):
+            h.extend(old.get(name, ()))
+        venv.curriculum.update()
+    if venv.lane_keeping is not None:
+        from racecav.training.lane_keeping import LaneKeeping
+
+        venv.lane_keeping = LaneKeeping(venv.worlds, venv.slices, venv.settings.lane_keeping,
+                                        venv.settings.lane_keeping_horizon_s)
+    if venv.hold_heading is not None:
+        venv.hold_heading.reset(venv.is_scenario)
