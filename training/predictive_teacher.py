@@ -502,7 +502,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m racecav.training.predictive_teacher",
                                 description="the predictive teacher driven by its own labels in the fast world, per "
                                             "family and split, beside both non-evading references on the same seeds")
-    p.add_argument("--suite", default="roads", help="suite NAME (runs/suites/NAME) or folder with suite.json")
+    p.add_argument("--suite", required=True, help="suite NAME (runs/suites/NAME) or folder with suite.json")
     p.add_argument("--splits", default="test,ood,controls", help="comma-separated splits")
     p.add_argument("--trials", type=int, default=2, help="trials per file")
     p.add_argument("--seed", type=int, default=SELECTION_SEED)
