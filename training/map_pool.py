@@ -86,10 +86,3 @@ def resample(venv, seed: int | None = None) -> None:
         for name, h in zip(venv.curriculum.names, venv.curriculum.history):
             h.extend(old.get(name, ()))
         venv.curriculum.update()
-    if venv.lane_keeping is not None:
-        from racecav.training.lane_keeping import LaneKeeping
-
-        venv.lane_keeping = LaneKeeping(venv.worlds, venv.slices, venv.settings.lane_keeping,
-                                        venv.settings.lane_keeping_horizon_s)
-    if venv.hold_heading is not None:
-        venv.hold_heading.reset(venv.is_scenario)
