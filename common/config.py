@@ -244,8 +244,6 @@ class PerturbConfig(Section):
     @classmethod
     def _from_text(cls, v):
         if isinstance(v, str):  # a preset name and/or key=value pairs (common/perturb.py)
-            from racecav.common.perturb import parse_text
-
             return parse_text(v)
         return v
 
@@ -261,6 +259,69 @@ class PerturbConfig(Section):
         """Canonical short text: "nominal", or the active fields as sorted key=value pairs."""
         act = self.active()
         return ",".join(f"{k}={v:g}" for k, v in sorted(act.items())) if act else "nominal"
+
+
+
+PERTURB_PRESETS_FILE = Path(__file__).parent / "data" / "perturbations.toml"
+"""Named perturbations with the source of every number (docs/robustness.md). The parsing lives
+here, beside PerturbConfig, which accepts its text; the model itself is common/perturb.py."""
+
+
+def perturb_keys() -> list[str]:
+    """The fields a perturbation preset or ``--perturb`` may set."""
+    return list(PerturbConfig.model_fields)
+
+
+def _check_keys(data: dict, where: str) -> None:
+    for k in data:
+        if k not in PerturbConfig.model_fields:
+            raise ValueError(f"{where}: unknown key {k!r} (known: {', '.join(perturb_keys())})")
+
+
+def load_presets(path: Path | str | None = None) -> dict[str, dict]:
+    """Preset name -> its non-default fields, validated; ValueError naming file, preset and key."""
+    path = Path(path or PERTURB_PRESETS_FILE)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"perturbation presets {path}: {e}") from None
+    out = {}
+    for name, table in data.items():
+        if not isinstance(table, dict):
+            raise ValueError(f"perturbation presets {path}: {name!r} is not a [preset] table")
+        _check_keys(table, f"perturbation presets {path} [{name}]")
+        try:
+            PerturbConfig.model_validate(table)
+        except Exception as e:  # a value out of its range: one line
+            raise ValueError(f"perturbation presets {path} [{name}]: {str(e).splitlines()[-2].strip()}") from None
+        out[name] = dict(table)
+    return out
+
+
+def parse_text(text: str, presets: dict[str, dict] | None = None) -> dict:
+    """``"PRESET"``, ``"key=value,..."`` or both (later items win) -> PerturbConfig fields.
+
+    :raises ValueError: one line naming the unknown preset or key, or the bad value.
+    """
+    presets = load_presets() if presets is None else presets
+    out: dict = {}
+    for item in filter(None, (x.strip() for x in text.split(","))):
+        key, eq, value = item.partition("=")
+        key = key.strip()
+        if not eq:
+            if key == "nominal":
+                continue
+            if key not in presets:
+                raise ValueError(f"perturb: unknown preset {key!r} (known: nominal, {', '.join(presets)}; "
+                                 f"or key=value with keys {', '.join(perturb_keys())})")
+            out.update(presets[key])
+            continue
+        _check_keys({key: 0}, "perturb")
+        try:
+            out[key] = float(value)
+        except ValueError:
+            raise ValueError(f"perturb: {key}={value.strip()!r} is not a number") from None
+    return out
 
 
 class SimConfig(Section):

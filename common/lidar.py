@@ -13,6 +13,8 @@ Two representations, one conversion each way:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -141,3 +143,28 @@ def make_scan(ranges, stamp_ns: int, seq: int, source: str, spec: LidarSpec | No
                 angle_increment=spec.angle_increment, scan_time=1.0 / spec.scan_rate_hz,
                 range_min=spec.range_min, range_max=spec.range_max,
                 ranges=np.asarray(ranges, dtype=np.float32))
+
+
+def fill_holes(th: np.ndarray, r: np.ndarray, ok: np.ndarray, max_gap_deg: float) -> np.ndarray:
+    """Samples not ``ok`` replaced by linear interpolation in angle between the nearest good
+    samples when those are at most ``max_gap_deg`` apart; +inf where the hole is wider. The one
+    hole filling of the project: the sensor service's (services/sensor/preprocess.py) and the
+    sim's for perturbed scans (common/perturb.py).
+
+    :param th: sorted angles (rad). :param r: ranges (m). :param ok: the trustworthy samples.
+    """
+    rr = np.asarray(r, dtype=np.float64)
+    out = np.where(ok, rr, np.inf)
+    bad = np.flatnonzero(~ok)
+    good = np.flatnonzero(ok)
+    if bad.size and good.size >= 2:
+        # Nearest good sample on each side of every bad one.
+        right = np.searchsorted(good, bad)
+        has = (right > 0) & (right < good.size)
+        lo = good[np.clip(right - 1, 0, good.size - 1)]
+        hi = good[np.clip(right, 0, good.size - 1)]
+        gap = th[hi] - th[lo]
+        fill = has & (gap <= math.radians(max_gap_deg)) & (gap > 0)
+        w = np.where(fill, (th[bad] - th[lo]) / np.where(gap > 0, gap, 1.0), 0.0)
+        out[bad[fill]] = (rr[lo] + w * (rr[hi] - rr[lo]))[fill]
+    return out

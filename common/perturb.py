@@ -5,7 +5,7 @@ presets with their sources: common/data/perturbations.toml, docs/robustness.md):
 
 - the lidar (:func:`perturb_scan`, called by both worlds on the agent's scan): Gaussian range
   noise (absolute and range-proportional, in quadrature), dropped returns (the S2 reports 0; our
-  Scan says +inf), then the sensor service's own hole filling (services/sensor/preprocess.py
+  Scan says +inf), then the sensor service's own hole filling (common/lidar.py
   ``fill_holes``, up to SensorConfig.max_gap_deg): the controller sees what the car's would;
 - the mount yaw, mass, friction and motor gain (:func:`perturbed_car`: the car the world
   builds; the friction is the floor's, see the worlds), the steering offset (the worlds add it
@@ -21,73 +21,15 @@ repeats exactly.
 from __future__ import annotations
 
 import math
-import tomllib
-from pathlib import Path
 
 import numpy as np
 
-from racecav.common.config import PerturbConfig
-from racecav.common.lidar import LidarSpec, ray_angles, scan_ranges
+from racecav.common.config import PERTURB_PRESETS_FILE as PRESETS_FILE, PerturbConfig, load_presets, parse_text
+from racecav.common.config import perturb_keys as keys
+from racecav.common.lidar import LidarSpec, fill_holes, ray_angles, scan_ranges
 
-PRESETS_FILE = Path(__file__).parent / "data" / "perturbations.toml"
 SALT = 58
 """Mixed into the episode seed: the perturbation's draws never repeat the scenario's."""
-
-
-def keys() -> list[str]:
-    return list(PerturbConfig.model_fields)
-
-
-def _check_keys(data: dict, where: str) -> None:
-    for k in data:
-        if k not in PerturbConfig.model_fields:
-            raise ValueError(f"{where}: unknown key {k!r} (known: {', '.join(keys())})")
-
-
-def load_presets(path: Path | str | None = None) -> dict[str, dict]:
-    """Preset name -> its non-default fields, validated; ValueError naming file, preset and key."""
-    path = Path(path or PRESETS_FILE)
-    try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"perturbation presets {path}: {e}") from None
-    out = {}
-    for name, table in data.items():
-        if not isinstance(table, dict):
-            raise ValueError(f"perturbation presets {path}: {name!r} is not a [preset] table")
-        _check_keys(table, f"perturbation presets {path} [{name}]")
-        try:
-            PerturbConfig.model_validate(table)
-        except Exception as e:  # a value out of its range: one line
-            raise ValueError(f"perturbation presets {path} [{name}]: {str(e).splitlines()[-2].strip()}") from None
-        out[name] = dict(table)
-    return out
-
-
-def parse_text(text: str, presets: dict[str, dict] | None = None) -> dict:
-    """``"PRESET"``, ``"key=value,..."`` or both (later items win) -> PerturbConfig fields.
-
-    :raises ValueError: one line naming the unknown preset or key, or the bad value.
-    """
-    presets = load_presets() if presets is None else presets
-    out: dict = {}
-    for item in filter(None, (x.strip() for x in text.split(","))):
-        key, eq, value = item.partition("=")
-        key = key.strip()
-        if not eq:
-            if key == "nominal":
-                continue
-            if key not in presets:
-                raise ValueError(f"perturb: unknown preset {key!r} (known: nominal, {', '.join(presets)}; "
-                                 f"or key=value with keys {', '.join(keys())})")
-            out.update(presets[key])
-            continue
-        _check_keys({key: 0}, "perturb")
-        try:
-            out[key] = float(value)
-        except ValueError:
-            raise ValueError(f"perturb: {key}={value.strip()!r} is not a number") from None
-    return out
 
 
 def make(text_or_cfg) -> PerturbConfig:
@@ -127,7 +69,6 @@ def perturb_scan(ranges, spec: LidarSpec, p: PerturbConfig, rng: np.random.Gener
     if not lidar_active(p):
         return ranges
     from racecav.common.config import SensorConfig
-    from racecav.services.sensor.preprocess import fill_holes
 
     r = np.array(ranges, dtype=np.float64)
     hit = np.isfinite(r)

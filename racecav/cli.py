@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "echo": ("racecav.common.echo", "print decoded messages of a key, like `ros2 topic echo`"),
     "bench": ("racecav.common.bench", "benchmarks: results go to docs/benchmarks.md"),
     "demo": ("racecav.evaluation.demo", "the README's main command"),
-    "suite": ("racecav.evaluation.suite", "generate the procedural conflict suite (train/test splits of scenario files)"),
+    "suite": ("racecav.evaluation.suite_cli", "generate the procedural conflict suite (train/test splits of scenario files)"),
     "eval": ("racecav.evaluation.evaluate", "evaluation over the real services: success, distances, latency; --table writes docs/results.md"),
     "sensor": ("racecav.services.sensor.service", "real lidar: RPLIDAR S2 driver publishing 170-ray Scans"),
     "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),

@@ -411,6 +411,7 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
 
     from racecav.common import fuzz
     from racecav.common.client import live_services
+    from racecav.services.ros2 import fuzz as ros2_fuzz
     from racecav.common.config import load_config
     from racecav.services.actuator.emulator import VescEmulator
 
@@ -440,8 +441,8 @@ def fuzz_services(per_key: int, warmup: int = 300, seed: int = 0, progress=None)
         max_drive = load_config().ros2.max_payload_bytes
         inputs = {leaf: (keys.topic(CAR, leaf), lambda leaf=leaf: fuzz.random_payload(leaf, rng),
                          lambda p, leaf=leaf: fuzz.expected_invalid(leaf, p)) for leaf in fuzz.INPUTS}
-        inputs[fuzz.DRIVE_IN] = (drive_key, lambda: fuzz.random_drive_payload(rng, max_drive),
-                                 lambda p: fuzz.drive_invalid(p, max_drive))
+        inputs[ros2_fuzz.DRIVE_IN] = (drive_key, lambda: ros2_fuzz.random_drive_payload(rng, max_drive),
+                                 lambda p: ros2_fuzz.drive_invalid(p, max_drive))
 
         def send(n: int, count: bool) -> None:
             for leaf, (key, make, is_invalid) in inputs.items():

@@ -31,6 +31,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as hst
 
 from racecav.common import fuzz, keys, procs
+from racecav.services.ros2 import fuzz as ros2_fuzz
 from racecav.common.client import get_status, live_services, query
 from racecav.common.codec import decode, encode
 from racecav.common.messages import DriveCommand
@@ -45,7 +46,7 @@ WARMUP = 40
 # round. So the check is on the smallest growth over the rounds.
 ROUND_GROWTH_KB = 8_000
 
-DRIVE_IN = fuzz.DRIVE_IN
+DRIVE_IN = ros2_fuzz.DRIVE_IN
 
 # who subscribes to which input key (the services' setup(); baseline: ego_state auto reads state;
 # record: racecav/<car>/**, every racecav key)
@@ -76,24 +77,24 @@ def drive_strategy():
     CDR, extreme float32 values and bit patterns in the drive fields, a forged frame_id length,
     racecav msgpack on the ROS key, valid CDR over the size limit."""
     st = hst
-    valid = st.builds(fuzz.drive_cdr, steer=st.floats(-1.0, 1.0, width=32), speed=st.floats(-20.0, 20.0, width=32),
+    valid = st.builds(ros2_fuzz.drive_cdr, steer=st.floats(-1.0, 1.0, width=32), speed=st.floats(-20.0, 20.0, width=32),
                       stamp_ns=st.integers(0, 2**31 * 10**9 - 1), frame=st.text(max_size=40))
     return st.one_of(
         st.binary(max_size=300), valid,
         st.tuples(valid, st.integers(0, 10**6)).map(lambda t: t[0][:t[1] % (len(t[0]) + 1)]),
-        st.tuples(valid, st.lists(st.integers(0, 2**20), min_size=1, max_size=3)).map(lambda t: fuzz.flip_bits(*t)),
-        st.tuples(valid, st.integers(0, 4), st.one_of(st.sampled_from(fuzz.F32_EXTREMES), st.integers(0, 2**32 - 1)))
-        .map(lambda t: fuzz.set_drive_float(*t)),
+        st.tuples(valid, st.lists(st.integers(0, 2**20), min_size=1, max_size=3)).map(lambda t: ros2_fuzz.flip_bits(*t)),
+        st.tuples(valid, st.integers(0, 4), st.one_of(st.sampled_from(ros2_fuzz.F32_EXTREMES), st.integers(0, 2**32 - 1)))
+        .map(lambda t: ros2_fuzz.set_drive_float(*t)),
         st.tuples(valid, st.integers(0, 2**32 - 1)).map(lambda t: t[0][:12] + struct.pack("<I", t[1]) + t[0][16:]),
         st.integers(0, 2**32 - 1).map(lambda s: fuzz.random_payload(keys.DRIVE_ROS, np.random.default_rng(s))),
-        st.integers(MAX_DRIVE_BYTES, 3 * MAX_DRIVE_BYTES).map(lambda n: fuzz.drive_cdr(0.0, 1.0, 1, "x" * n)),
+        st.integers(MAX_DRIVE_BYTES, 3 * MAX_DRIVE_BYTES).map(lambda n: ros2_fuzz.drive_cdr(0.0, 1.0, 1, "x" * n)),
     )
 
 
 def drive_invalid(payload: bytes) -> bool:
     """True if the mirror must refuse ``payload`` on /drive (over the size limit, or its converter
     raises ValueError)."""
-    return fuzz.drive_invalid(payload, MAX_DRIVE_BYTES)
+    return ros2_fuzz.drive_invalid(payload, MAX_DRIVE_BYTES)
 
 
 def rotate_bad(tmp_path) -> list[bytes]:
@@ -305,7 +306,7 @@ def test_hostile_payloads_on_every_key_and_query(services, session, tmp_path):
         from racecav.services.ros2.rmw import attachment
 
         for k in range(3):
-            session.put(drive_key, fuzz.drive_cdr(0.1, 1.0, time.time_ns()), attachment=attachment(k + 1, time.time_ns(),
+            session.put(drive_key, ros2_fuzz.drive_cdr(0.1, 1.0, time.time_ns()), attachment=attachment(k + 1, time.time_ns(),
                                                                                               bytes(16)))
             time.sleep(0.05)
         assert wait_until(lambda: len(got) >= 3, timeout=10), got

@@ -48,7 +48,7 @@ def test_dropped_returns_share_and_the_sensor_services_hole_filling():
     assert err[:, 12:-12].max() < 1e-4  # linear: exact (holes reach at most 11 rays)
     assert err.max() < 0.012  # the edges: from the virtual sample beyond them (half a ray's slope)
     # a hole wider than SensorConfig.max_gap_deg stays open, as on the car
-    from racecav.services.sensor.preprocess import fill_holes
+    from racecav.common.lidar import fill_holes
 
     th = ray_angles(SPEC).astype(np.float64)
     ok = np.ones(SPEC.n_rays, bool)

@@ -60,29 +60,3 @@ class MapPool:
             w.scenario_families = fams  # the curriculum's grouping (training/vec_env.py)
             worlds.append(w)
         return worlds
-
-
-def resample(venv, seed: int | None = None) -> None:
-    """Move a FastVecEnv's scenario worlds to K maps drawn afresh from its pool, reset them, and
-    rebuild what holds the old worlds (the curriculum keeps its history, by family)."""
-    pool: MapPool | None = getattr(venv, "map_pool", None)
-    if pool is None:
-        raise ValueError("resample_maps: the env has no map pool (set scenario_maps)")
-    rng = venv.map_rng if seed is None else np.random.default_rng(seed)
-    first = next(i for i, w in enumerate(venv.worlds) if w.actors is not None)
-    new = pool.build(pool.draw(rng), seed=int(rng.integers(2**31)))
-    venv.worlds[first:] = new
-    venv.world = venv.worlds[0]
-    for w, sl in zip(new, venv.slices[first:]):
-        obs = w.reset()
-        venv._stack[sl] = obs[:, None]
-        venv.a_prev[sl] = 0.0
-    cur = venv.curriculum
-    if cur is not None:
-        from racecav.training.vec_env import FamilyCurriculum
-
-        old = dict(zip(cur.names, cur.history))
-        venv.curriculum = FamilyCurriculum(venv.worlds, venv.settings.curriculum_boost)
-        for name, h in zip(venv.curriculum.names, venv.curriculum.history):
-            h.extend(old.get(name, ()))
-        venv.curriculum.update()

@@ -224,11 +224,25 @@ class FastVecEnv(VecEnv):
         return obs, rewards, dones, infos
 
     def resample_maps(self, seed: int | None = None) -> None:
-        """Move the scenario worlds to other maps of the pool (EnvConfig.scenario_maps); cuts their
-        episodes: call it between rollouts (training/map_pool.py)."""
-        from racecav.training.map_pool import resample
-
-        resample(self, seed)
+        """Move the scenario worlds to K maps drawn afresh from the pool (EnvConfig.scenario_maps,
+        training/map_pool.py), reset them and rebuild what holds the old worlds (the curriculum
+        keeps its history, by family). It cuts their episodes: call it between rollouts."""
+        if self.map_pool is None:
+            raise ValueError("resample_maps: the env has no map pool (set scenario_maps)")
+        rng = self.map_rng if seed is None else np.random.default_rng(seed)
+        first = next(i for i, w in enumerate(self.worlds) if w.actors is not None)
+        new = self.map_pool.build(self.map_pool.draw(rng), seed=int(rng.integers(2**31)))
+        self.worlds[first:] = new
+        self.world = self.worlds[0]
+        for w, sl in zip(new, self.slices[first:]):
+            self._stack[sl] = w.reset()[:, None]
+            self.a_prev[sl] = 0.0
+        if self.curriculum is not None:
+            old = dict(zip(self.curriculum.names, self.curriculum.history))
+            self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost)
+            for name, h in zip(self.curriculum.names, self.curriculum.history):
+                h.extend(old.get(name, ()))
+            self.curriculum.update()
 
     def close(self) -> None:
         pass

@@ -27,7 +27,7 @@ from typing import Literal
 
 import numpy as np
 
-from racecav.common.lidar import LidarSpec, make_scan, ray_angles, scan_ranges
+from racecav.common.lidar import LidarSpec, fill_holes, make_scan, ray_angles, scan_ranges
 
 
 @dataclass(frozen=True)
@@ -88,31 +88,6 @@ def clean(theta: np.ndarray, r: np.ndarray, spec: LidarSpec, p: PreprocessParams
     ok = np.isfinite(rr) & (rr >= spec.range_min) & (rr <= spec.range_max)
     ok &= ~_spikes(rr, ok, p)
     return th, fill_holes(th, rr, ok, p.max_gap_deg)
-
-
-def fill_holes(th: np.ndarray, r: np.ndarray, ok: np.ndarray, max_gap_deg: float) -> np.ndarray:
-    """Samples not ``ok`` replaced by linear interpolation in angle between the nearest good
-    samples when those are at most ``max_gap_deg`` apart; +inf where the hole is wider. The one
-    hole filling of the project: the sensor service's, and the sim's for perturbed scans
-    (common/perturb.py).
-
-    :param th: sorted angles (rad). :param r: ranges (m). :param ok: the trustworthy samples.
-    """
-    rr = np.asarray(r, dtype=np.float64)
-    out = np.where(ok, rr, np.inf)
-    bad = np.flatnonzero(~ok)
-    good = np.flatnonzero(ok)
-    if bad.size and good.size >= 2:
-        # Nearest good sample on each side of every bad one.
-        right = np.searchsorted(good, bad)
-        has = (right > 0) & (right < good.size)
-        lo = good[np.clip(right - 1, 0, good.size - 1)]
-        hi = good[np.clip(right, 0, good.size - 1)]
-        gap = th[hi] - th[lo]
-        fill = has & (gap <= math.radians(max_gap_deg)) & (gap > 0)
-        w = np.where(fill, (th[bad] - th[lo]) / np.where(gap > 0, gap, 1.0), 0.0)
-        out[bad[fill]] = (rr[lo] + w * (rr[hi] - rr[lo]))[fill]
-    return out
 
 
 def downsample(th: np.ndarray, r: np.ndarray, spec: LidarSpec, p: PreprocessParams) -> np.ndarray:
