@@ -387,7 +387,7 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
     """
     from racecav.common.vehicle import load_car
     from racecav.sim.fast_world import FastWorld
-    from racecav.training.expert import tracking_steer
+    from racecav.training.teacher import tracking_steer
 
     car = car or load_car()
     keys = ("success", "collided", "frozen", "from_rest", "drive_off", "done_at")
