@@ -585,12 +585,17 @@ class TrainConfig(Section):
     expert_share: float = Field(0.0, ge=0, le=1)
     """Share of the episodes the teacher drives (DAgger's beta); the policy drives the rest. Every
     step is labelled with the teacher's action either way."""
-    expert: Literal["yield"] = "yield"
-    """The teacher: yield (training/teacher.YieldTeacher), the ``init_from`` policy's own action,
+    expert: Literal["yield", "predictive"] = "yield"
+    """The teacher. yield (training/teacher.YieldTeacher): the ``init_from`` policy's own action,
     relabelled in the ``mirror_families`` scenarios: brake while a car in the ego's scan is in or
-    closing on the crossing, follow a car ahead, steer round an oncoming or stopped one. The other
-    teachers of the ablation (a privileged planner, the mirror image, tracking, hold, stop and look)
-    are in the history at commit 3a95a65."""
+    closing on the crossing, follow a car ahead, steer round an oncoming or stopped one.
+    predictive (training/predictive_teacher.py): knows no family; predicts every actor and takes
+    the first clear manoeuvre (scenario worlds only: ``env.scenario_share`` 1). The other teachers
+    of the ablation (a privileged planner, the mirror image, tracking, hold, stop and look) are in
+    the history at commit 3a95a65."""
+    map_resample_every: int = Field(0, ge=0)
+    """dagger: rollouts between draws of the scenario worlds' maps (``env.scenario_maps``;
+    FastVecEnv.resample_maps). 0: the maps drawn at the start are kept."""
     mirror_families: str = "cross-left"
     """The scenario families (comma-separated; a family of every suite, cross-left, or of one,
     paper-timed/cross-left) whose steps the teacher relabels."""

@@ -87,6 +87,25 @@ def minibatches(rng: np.random.Generator, man: np.ndarray, size: int, balance: b
             yield rng.integers(0, len(man), size)
 
 
+def make_teacher(tc, fast):
+    """The run's teacher over the VecEnv's worlds (``tc.expert``)."""
+    if tc.expert == "predictive":
+        from racecav.training.predictive_teacher import PredictiveTeacher
+
+        if any(w.actors is None for w in fast.worlds):
+            raise ValueError("--expert predictive labels scenario episodes only: set --env-scenario-share 1")
+        return PredictiveTeacher(fast.worlds)
+    return yield_teacher(tc, fast)
+
+
+def teacher_labels(teacher, tc, venv) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N, 2), the steps of the kind --bc-balance gives half of each minibatch)."""
+    if tc.expert == "predictive":  # its manoeuvres round a car
+        return teacher.labels(), teacher.steered()
+    label, man = teacher.labels(venv.get_original_obs())
+    return label, (teacher.steered() if tc.bc_balance else man)
+
+
 def yield_teacher(tc, fast):
     """The frozen ``init_from`` policy (with its normalisation) under the run's view settings,
     relabelled by yield in the ``mirror_families`` scenarios (training/teacher.py)."""
@@ -124,7 +143,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     fast = venv.venv
     venv.training = False  # frozen statistics
     policy = model.policy
-    teacher = yield_teacher(tc, fast)
+    teacher = make_teacher(tc, fast)
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     opt = torch.optim.Adam(params, lr=tc.learning_rate)
     scale = torch.tensor(LOSS_SCALE, dtype=torch.float32)
@@ -151,14 +170,13 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     truncate_csv(run_dir / "progress.csv", samples, FIELDS)
     obs = venv.reset()
     by_expert = rng.random(n) < tc.expert_share  # who drives each world's episode
+    rollouts = 0
     try:
         while samples < total and not stop.requested:
             t_roll = time.monotonic()
             agree = succ = eps_s = contacts = eps_t = done_steps = 0
             for _ in range(tc.n_steps):
-                label, man = teacher.labels(venv.get_original_obs())
-                if tc.bc_balance:  # yield's steering round a car: a few per cent of the labels
-                    man = teacher.steered()
+                label, man = teacher_labels(teacher, tc, venv)
                 # as the car acts (a policy teacher's steering saturates beyond the range): the
                 # loss and the agreement then read a label beyond a bound as that bound
                 label = np.clip(label, lo, hi)
@@ -207,6 +225,12 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
             if samples >= next_ckpt:
                 save(final=False)
                 next_ckpt = (samples // tc.checkpoint_every + 1) * tc.checkpoint_every
+            rollouts += 1
+            if tc.map_resample_every and rollouts % tc.map_resample_every == 0 and not stop.requested:
+                fast.resample_maps()  # other roads; their episodes start afresh
+                teacher = make_teacher(tc, fast)
+                obs = venv.reset()
+                by_expert = rng.random(n) < tc.expert_share
     finally:
         for sig, h in old.items():
             signal.signal(sig, h)

@@ -37,8 +37,10 @@ import argparse
 import math
 import sys
 from dataclasses import dataclass
+from types import SimpleNamespace
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from racecav.common.vehicle import brake_from_action, throttle_for_speed, wheel_speed_step
@@ -163,38 +165,124 @@ def predict_actors(acts, steps: int, dt: float = DT, nominal: bool = False) -> t
     return np.where(used, x, 1e6), np.where(used, y, 1e6), yaw, np.stack(speeds, -1)
 
 
-class PredictiveTeacher:
-    """Labels for every world of a scenario FastWorld (read, never changed).
+ACTOR_FIELDS = {  # ActorBatch arrays the prediction reads, and the value of an unused slot
+    "used": False, "pts": 0.0, "cum": np.inf, "n_pts": 2, "s": 0.0, "v": 0.0, "v0": 0.0, "started": False,
+    "sync": False, "released": False, "chg_at": np.inf, "chg_v": 0.0, "chg_acc": 0.0, "yaw": 0.0}
 
-    :param world: a FastWorld with scenarios (``world.actors``).
+
+class Batch:
+    """One or several FastWorlds seen by the teacher as one batch (the fast VecEnv's scenario
+    worlds, one per map): the egos' state and every actor, padded to the largest actor count,
+    path length and speed-change table. One batch, one pass of the prediction: its cost is in
+    its Python loops over time steps and path points, not in the number of worlds."""
+
+    def __init__(self, worlds):
+        worlds = list(worlds)
+        if not worlds or any(w.actors is None for w in worlds):
+            raise ValueError("the predictive teacher needs scenario worlds (their actors' paths)")
+        first = worlds[0]
+        for w in worlds[1:]:
+            if (w.car is not first.car and w.car != first.car) or w.agent_speed_scale != first.agent_speed_scale:
+                raise ValueError("the predictive teacher's worlds must share the car and its speed scale")
+        self.worlds = worlds
+        self.car, self.agent_speed_scale, self.brake_decel = first.car, first.agent_speed_scale, first.brake_decel
+        self.n_envs = sum(w.n_envs for w in worlds)
+        self.owner = [(w, n) for w in worlds for n in range(w.n_envs)]  # env -> (world, its index there)
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Read the worlds' current state (an episode reset loads new paths: every call)."""
+        ws = self.worlds
+        for k in ("x", "y", "yaw", "v", "w"):
+            setattr(self, k, np.concatenate([getattr(w, k)[:, 0] for w in ws]))
+        self.time = np.concatenate([w.time for w in ws])
+        acts = [w.actors for w in ws]
+        A = max(1, max(a.n_actors for a in acts))
+        P = max(a.max_points for a in acts)
+        S = max(a.max_changes for a in acts)
+        out = SimpleNamespace(n_actors=A, max_changes=S)
+        for k, fill in ACTOR_FIELDS.items():
+            ref = getattr(acts[0], k)
+            tail = (P,) if k in ("pts", "cum") else (S,) if k.startswith("chg_") else ()
+            arr = np.full((self.n_envs, A, *tail, *ref.shape[3:]), fill, ref.dtype)
+            i = 0
+            for a in acts:
+                src = getattr(a, k)
+                arr[(slice(i, i + a.n_envs), *(slice(0, d) for d in src.shape[1:]))] = src
+                i += a.n_envs
+            setattr(out, k, arr)
+        self.actors = out
+
+    def ego_road(self, n: int) -> Road:
+        w, i = self.owner[n]
+        sc = w.scenarios[int(w.scenario_index[i])]
+        return ego_road(sc, *w.start_pose[i], world=w.world)
+
+    def road_key(self, n: int) -> tuple:
+        w, i = self.owner[n]
+        return id(w), int(w.scenario_index[i]), tuple(np.round(w.start_pose[i], 3))
+
+
+@numba.njit(cache=True)
+def _clearance(gx, gy, gyaw, ax, ay, ayaw, used, off, radii):
+    """(N, M, A, T): per manoeuvre, actor and time, the least distance between the ego's two
+    circles and the actor's two, minus ``radii`` (the batch's largest array: a loop, not numpy)."""
+    N, M, T = gx.shape
+    A = ax.shape[1]
+    out = np.full((N, M, A, T), np.inf)
+    for n in range(N):
+        for a in range(A):
+            if not used[n, a]:
+                continue
+            for t in range(T):
+                c, s = math.cos(ayaw[n, a, t]), math.sin(ayaw[n, a, t])
+                a1x, a1y = ax[n, a, t] - off * c, ay[n, a, t] - off * s
+                a2x, a2y = ax[n, a, t] + off * c, ay[n, a, t] + off * s
+                for m in range(M):
+                    ec, es = math.cos(gyaw[n, m, t]), math.sin(gyaw[n, m, t])
+                    best = np.inf
+                    for sg in (-1.0, 1.0):
+                        ex, ey = gx[n, m, t] + sg * off * ec, gy[n, m, t] + sg * off * es
+                        d1 = (ex - a1x) ** 2 + (ey - a1y) ** 2
+                        d2 = (ex - a2x) ** 2 + (ey - a2y) ** 2
+                        best = min(best, d1, d2)
+                    out[n, m, a, t] = math.sqrt(best) - radii
+    return out
+
+
+class PredictiveTeacher:
+    """Labels for every env of one scenario FastWorld or of several (read, never changed).
+
+    :param worlds: a FastWorld with scenarios (``world.actors``), or a list of them (labels in
+        their order, concatenated).
     :param horizon_s: prediction horizon (s).
     :param margin_m: clearance kept between the predicted footprints (m).
     """
 
-    def __init__(self, world, horizon_s: float = HORIZON_S, margin_m: float = MARGIN_M):
-        if world.actors is None:
-            raise ValueError("the predictive teacher needs a scenario world (its actors' paths)")
-        self.w = world
-        self.car = car = world.car
+    def __init__(self, worlds, horizon_s: float = HORIZON_S, margin_m: float = MARGIN_M):
+        self.w = Batch(worlds if isinstance(worlds, (list, tuple)) else [worlds])
+        self.car = car = self.w.car
         self.steps = int(round(horizon_s / DT))
         self.margin = margin_m
-        self.v_full = car.v_max * world.agent_speed_scale
+        self.v_full = car.v_max * self.w.agent_speed_scale
         # the footprint: two circles on the car's axis, a quarter length either side of its centre
         self.c_off = car.length / 4
         self.c_r = math.hypot(car.length / 4, car.width / 2)
-        self._roads: dict[tuple[int, tuple], Road] = {}
-        self.choice = np.zeros(world.n_envs, np.int64)
-        """(N,) the manoeuvre each world's last label follows (an index into ``names``)."""
+        self._roads: dict[tuple, Road] = {}
+        self.choice = np.zeros(self.w.n_envs, np.int64)
+        """(N,) the manoeuvre each env's last label follows (an index into ``names``)."""
         self.names: list[str] = []
 
     def road(self, n: int) -> Road:
-        """World ``n``'s ego road (per scenario and start; cached)."""
-        w = self.w
-        key = (int(w.scenario_index[n]), tuple(np.round(w.start_pose[n], 3)))
+        """Env ``n``'s ego road (per world, scenario and start; cached)."""
+        key = self.w.road_key(n)
         if key not in self._roads:
-            sc = w.scenarios[key[0]]
-            self._roads[key] = ego_road(sc, *w.start_pose[n], world=w.world)
+            self._roads[key] = self.w.ego_road(n)
         return self._roads[key]
+
+    def steered(self) -> np.ndarray:
+        """(N,) the last labels steer round a car (a shift manoeuvre)."""
+        return np.array(["@" in self.names[c] for c in self.choice]) if self.names else np.zeros(len(self.choice), bool)
 
     # ------------------------------------------------------------------ manoeuvres
     def manoeuvres(self, roads: list[Road]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -260,18 +348,19 @@ class PredictiveTeacher:
     def labels(self) -> np.ndarray:
         """(N, 2) a_T, a_delta for every world's current state."""
         w, car = self.w, self.car
+        w.refresh()
         N = w.n_envs
         roads = [self.road(n) for n in range(N)]
         rx, ry, ryaw = (np.array([getattr(r, k) for r in roads]) for k in ("x", "y", "yaw"))
         c, s = np.cos(ryaw), np.sin(ryaw)
-        ex, ey, eyaw, ev = w.x[:, 0], w.y[:, 0], w.yaw[:, 0], w.v[:, 0]
+        ex, ey, eyaw, ev = w.x, w.y, w.yaw, w.v
         e_s = (ex - rx) * c + (ey - ry) * s
         e_l = -(ex - rx) * s + (ey - ry) * c
         psi0 = np.angle(np.exp(1j * (eyaw - ryaw)))
         speed, lat_t, shift = self.manoeuvres(roads)
         M = len(speed)
         # the ego: distance driven over time under each manoeuvre, its path by distance
-        dist = self._speeds(ev, w.w[:, 0], speed)  # (N, M, T)
+        dist = self._speeds(ev, w.w, speed)  # (N, M, T)
         look = np.maximum(LOOKAHEAD_M, LOOKAHEAD_S * ev)
         n_pts = int(math.ceil(max(dist.max(), look.max()) / PATH_DS)) + 2
         psi_max = np.where(speed <= HEADING_SLOW_V, HEADING_MAX[1], HEADING_MAX[0])
@@ -350,14 +439,9 @@ class PredictiveTeacher:
 
     def _clearance(self, gx, gy, gyaw, ax, ay, ayaw) -> np.ndarray:
         """(N, M, A, T) the smallest distance between the ego's and each actor's circles, minus
-        both radii."""
-        o = self.c_off
-        e = np.stack([np.stack([gx + sg * o * np.cos(gyaw), gy + sg * o * np.sin(gyaw)], -1) for sg in (-1, 1)], -2)
-        a = np.stack([np.stack([ax + sg * o * np.cos(ayaw), ay + sg * o * np.sin(ayaw)], -1) for sg in (-1, 1)], -2)
-        # e (N, M, T, 2, 2) vs a (N, A, T, 2, 2) -> (N, M, A, T, 2, 2)
-        d = e[:, :, None, :, :, None, :] - a[:, None, :, :, None, :, :]
-        dist = np.sqrt((d * d).sum(-1)).min((-1, -2))
-        return dist - 2 * self.c_r
+        both radii (inf for an unused actor slot)."""
+        used = np.concatenate([self.w.actors.used] * (ax.shape[1] // self.w.actors.n_actors), 1)
+        return _clearance(gx, gy, gyaw, ax, ay, ayaw, used, self.c_off, 2 * self.c_r)
 
     def _steer_first(self, who: np.ndarray, ryaw: np.ndarray, v_meet: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(steer first, standing) (N,): the car the full-throttle plan meets first is one to steer
