@@ -55,6 +55,9 @@ DODGE_SPEEDS = (None, 0.9)  # a shift at full throttle, then at 0.9 m/s
 CURB_M = 0.1        # m the ego's side keeps from the curb in a shift
 CRAWL_V = 0.9       # m/s: a car ahead going the ego's way slower than this is passed, not followed
 STILL_V = 0.05      # m/s: a car slower than this stands
+WAIT_RANGE_M = 8.0  # m ahead along the ego's road in which a crawling crossing car is waited for
+STOP_MIN_S = 1.2    # s a stop lasts at least: a driver who stops, stands (and a car that waits
+                    # for the ego goes once it has stood a while)
 ALONG_SIN = 0.5     # |sin| of a car's heading off the ego's road below which it drives along it
 LOOKAHEAD_M = 0.9   # m of pure pursuit along the chosen path ...
 LOOKAHEAD_S = 0.6   # ... or this many seconds of the ego's speed, if longer (no weave at speed)
@@ -167,7 +170,8 @@ def predict_actors(acts, steps: int, dt: float = DT, nominal: bool = False) -> t
 
 ACTOR_FIELDS = {  # ActorBatch arrays the prediction reads, and the value of an unused slot
     "used": False, "pts": 0.0, "cum": np.inf, "n_pts": 2, "s": 0.0, "v": 0.0, "v0": 0.0, "started": False,
-    "sync": False, "released": False, "chg_at": np.inf, "chg_v": 0.0, "chg_acc": 0.0, "yaw": 0.0}
+    "sync": False, "released": False, "chg_at": np.inf, "chg_v": 0.0, "chg_acc": 0.0, "yaw": 0.0,
+    "x": 1e6, "y": 1e6}
 
 
 class Batch:
@@ -271,6 +275,8 @@ class PredictiveTeacher:
         self._roads: dict[tuple, Road] = {}
         self.choice = np.zeros(self.w.n_envs, np.int64)
         """(N,) the manoeuvre each env's last label follows (an index into ``names``)."""
+        self.stop_at = np.full(self.w.n_envs, np.inf)
+        """(N,) the time each env's current stop began (inf: not stopped)."""
         self.names: list[str] = []
 
     def road(self, n: int) -> Road:
@@ -391,9 +397,13 @@ class PredictiveTeacher:
         who = first_t.argmin(-1)
         t_meet = np.minimum(first_t[np.arange(N), who], self.steps)
         v_meet = av[np.arange(N), who, t_meet]  # its predicted speed when they would meet
-        steer_first, standing = self._steer_first(who % A, ryaw, v_meet)
+        steer_first, standing, waiting = self._steer_first(who % A, ryaw, v_meet)
+        stop = len(SPEEDS) + 1
         order_slow = [0, *range(1, len(SPEEDS) + 2), *np.flatnonzero(shift)]
         order_steer = [0, *np.flatnonzero(shift), *range(1, len(SPEEDS) + 2)]
+        # a crossing car crawling towards the conflict: it waits for the ego (or is about to go);
+        # creeping on keeps it waiting, so stop and let it through
+        order_wait = [0, stop, *np.flatnonzero(shift)]
         # fallback: the manoeuvre whose first contact comes latest, then the widest clearance
         t_hit = np.where(hit.any(2).any(-1), hit.any(2).argmax(-1), 10**6)
         worst = np.where(np.isfinite(clear), clear, 1e3).min((2, 3))
@@ -401,19 +411,24 @@ class PredictiveTeacher:
         self.debug = dict(ok=ok, t_hit=t_hit, worst=worst, steer_first=steer_first)
         # a stop lasts until going on (or steering round) is clear: no creeping up on a car that
         # waits for the ego (it would wait as long as the ego creeps)
-        stop = len(SPEEDS) + 1
         order_stopped = [0, *np.flatnonzero(shift & np.isinf(speed)), stop]
         order_stopped_standing = [0, *np.flatnonzero(shift), stop]  # round a standing car at any speed
-        stopped = (self.choice == stop) & (w.time > 1e-9)
+        stopped = (self.choice == stop) & (w.time > 1e-9) & (self.stop_at <= w.time)
+        fresh = stopped & (w.time - self.stop_at < STOP_MIN_S - 1e-9)
+        held = self._waited_for(rx, ry, ryaw, e_s, np.array([r.width for r in roads]))
         choice = np.empty(N, np.int64)
         for n in range(N):
+            if stopped[n] and (held[n] or fresh[n]):  # stood for a crawling car: until it goes (or has crossed)
+                choice[n] = stop
+                continue
             if stopped[n]:
                 order = order_stopped_standing if standing[n] else order_stopped
             else:
-                order = order_steer if steer_first[n] else order_slow
+                order = order_steer if steer_first[n] else order_wait if waiting[n] else order_slow
             # the first clear one; else the first without contact; else the latest contact
             good = [m for m in order if ok[n, m]] or [m for m in order if touch_free[n, m]]
             choice[n] = good[0] if good else fallback[n]
+        self.stop_at = np.where(choice != stop, np.inf, np.where(stopped, self.stop_at, w.time))
         self.choice = choice
         # throttle: full, a speed's throttle (brake above it), or the brake
         sp = speed[choice]
@@ -443,10 +458,30 @@ class PredictiveTeacher:
         used = np.concatenate([self.w.actors.used] * (ax.shape[1] // self.w.actors.n_actors), 1)
         return _clearance(gx, gy, gyaw, ax, ay, ayaw, used, self.c_off, 2 * self.c_r)
 
-    def _steer_first(self, who: np.ndarray, ryaw: np.ndarray, v_meet: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(steer first, standing) (N,): the car the full-throttle plan meets first is one to steer
-        round: standing where they would meet (``v_meet``, its predicted speed then), coming at the
-        ego along its road, or going its way slower than CRAWL_V."""
+    def _waited_for(self, rx, ry, ryaw, e_s, width) -> np.ndarray:
+        """(N,) a crossing car crawls towards the ego's road ahead of it, near, slower than its
+        own speed: a car that waits for the ego (as a synchronised scenario actor does) or edges
+        out (a slow car at its own speed is predicted well: no wait). Once the ego has stopped
+        for it, it stays stopped until the car goes faster or has crossed; going on as soon as a
+        prediction at the crawl says clear makes the car wait again (it waits as long as the ego
+        creeps)."""
+        a = self.w.actors
+        c, s = np.cos(ryaw)[:, None], np.sin(ryaw)[:, None]
+        along_a = (a.x - rx[:, None]) * c + (a.y - ry[:, None]) * s
+        lat_a = -(a.x - rx[:, None]) * s + (a.y - ry[:, None]) * c
+        rel = a.yaw - ryaw[:, None]
+        v = a.v * a.started
+        crossing = np.abs(np.sin(rel)) >= ALONG_SIN
+        towards = (lat_a * np.sin(rel) < 0) | (np.abs(lat_a) < width[:, None] / 2)
+        ahead = (along_a > e_s[:, None] - 0.5) & (along_a < e_s[:, None] + WAIT_RANGE_M)
+        crawl = (v >= STILL_V) & (v < CRAWL_V) & (v < 0.8 * a.v0)  # slowed below its own speed
+        return (a.used & crossing & towards & ahead & crawl).any(1)
+
+    def _steer_first(self, who: np.ndarray, ryaw: np.ndarray, v_meet: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(steer first, standing, waiting) (N,): the car the full-throttle plan meets first is one
+        to steer round: standing where they would meet (``v_meet``, its predicted speed then),
+        coming at the ego along its road, or going its way slower than CRAWL_V; or one to wait
+        for: crossing the ego's road, moving slower than CRAWL_V."""
         w = self.w
         idx = np.arange(w.n_envs)
         v = w.actors.v[idx, who] * w.actors.started[idx, who]
@@ -455,7 +490,8 @@ class PredictiveTeacher:
         standing = (v_meet < STILL_V) | (v < STILL_V)
         coming = along & (np.cos(rel) < 0)
         crawling = along & (np.cos(rel) > 0) & (v < CRAWL_V)
-        return standing | coming | crawling, standing
+        waiting = ~along & (v >= STILL_V) & (v < CRAWL_V)
+        return standing | coming | crawling, standing, waiting & ~standing
 
 
 # ---------------------------------------------------------------------------------- the probe
