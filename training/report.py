@@ -78,7 +78,7 @@ def render(names=REPORT_POLICIES) -> str:
         meta_path = MODELS_DIR / f"{name}.json"
         if meta_path.is_file() and (ev := json.loads(meta_path.read_text()).get("evaluation")):
             results[name] = ev
-    return (_markdown(results, curve_stats()) + ablation_markdown()
+    return (_markdown(results, curve_stats()) + recipes_markdown() + ablation_markdown()
             + targets.section(COMMITTED, json.loads((MODELS_DIR / "avoid.json").read_text())) + flags_markdown())
 
 
@@ -234,6 +234,43 @@ def _markdown(results: dict, curves: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+
+
+def recipes_markdown() -> str:
+    """The recipes (training/recipes/NAME.toml): each stage's command, start, samples and what it
+    does; with a committed record (training/recipes/NAME/manifest.json) the samples done and the
+    wall time of each stage on this machine."""
+    from racecav.training.recipe import RECIPES, load_recipe, names
+
+    L = ["", "## Recipes", "",
+         "A shipped policy is rebuilt by its recipe: `racecav train recipe NAME` (training/recipe.py) runs the stages of",
+         "training/recipes/NAME.toml in order, each a run of `racecav train racing|overtake|dagger` with its full",
+         "settings (a TrainConfig, common/config.py) and its start: a committed zip named by its sha256, or an earlier",
+         "stage's final checkpoint. A stage runs in runs/recipes/NAME/STAGE and resumes where it stopped, after its",
+         "config.json was checked against the recipe; `--chunk-steps N` stops after N more samples (a checkpoint",
+         "first), so a long recipe runs in chunks across sessions. runs/recipes/NAME/manifest.json records each",
+         "stage's start and its digest, the digest of its settings, samples, wall time and the final checkpoint's",
+         "digest; `racecav train recipe NAME --record` copies it, the stage records and each finished stage's final",
+         "weights to training/recipes/NAME/ (committed), from which a later stage starts on a fresh clone.", ""]
+    for name in names():
+        recipe = load_recipe(RECIPES / f"{name}.toml", configs=False)
+        mpath = RECIPES / name / "manifest.json"
+        done = {e["name"]: e for e in json.loads(mpath.read_text())["stages"]} if mpath.is_file() else None
+        L += [f"### `racecav train recipe {name}`", "", " ".join(recipe.description.split()), "",
+              "| stage | command | start | samples | what |" + (" samples done | wall time |" if done else ""),
+              "|---|---|---|---:|---|" + ("---:|---:|" if done else "")]
+        for st in recipe.stages:
+            start = f"stage `{st.after}`" if st.after else f"`{st.start}` (sha256 `{st.start_sha256[:12]}`)"
+            row = f"| {st.name} | {st.command} | {start} | {st.steps / 1e6:g} M | {' '.join(st.what.split())} |"
+            if done:
+                e = done.get(st.name, {})
+                row += (f" {e.get('samples', 0) / 1e6:.2f} M | {e.get('wall_s', 0) / 3600:.1f} h |" if e.get("samples")
+                        else " - | - |")
+            L.append(row)
+        L += ["", (f"Samples and wall time: training/recipes/{name}/manifest.json (one training process on the "
+                   "shared 2-core box)." if done else
+                   f"Not run yet: no record in training/recipes/{name}/ (`racecav train recipe {name} --record`)."), ""]
+    return "\n".join(L)
 
 
 def ablation_rows() -> list[dict]:

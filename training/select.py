@@ -71,6 +71,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--run-dir", type=Path, required=True)
     p.add_argument("--checkpoint", default="best", help="best (from eval.csv) | latest | STEP")
     p.add_argument("--name", required=True, help="racing | default | reversed (or any file name)")
+    p.add_argument("--recipe", metavar="NAME", help="the recipe that built the run (training/recipes/NAME.toml; "
+                   "--run-dir is one of its stages): the metadata names it and its digest")
     p.set_defaults(stage="ship")
     p = sub.add_parser("paths", help="draw a policy's paths through the intersection scenarios (PyBullet, "
                        "selection seeds): where it turns, and which way")

@@ -1,5 +1,6 @@
-"""``racecav train ship --run-dir DIR --checkpoint best|latest|STEP --name NAME``: writes
-common/data/policies/NAME.{npz,json,zip,vecnorm.pkl} and copies the run's learning curve,
+"""``racecav train ship --run-dir DIR --checkpoint best|latest|STEP --name NAME [--recipe R]``:
+writes common/data/policies/NAME.{npz,json,zip,vecnorm.pkl} (with ``--recipe``, the metadata
+names the recipe, its digest and the stage the run is) and copies the run's learning curve,
 settings and evaluation to training/checkpoints/RUN/ (committed: the report and ``--resume``
 across sessions need them)."""
 
@@ -38,6 +39,15 @@ def ship(args, cfg) -> int:
     if not ck.is_file():
         log.error("ship: no checkpoint %s", ck)
         return 2
+    recipe = None
+    if getattr(args, "recipe", None):
+        from racecav.training.recipe import RecipeError, recipe_record
+
+        try:
+            recipe = recipe_record(args.recipe, run_dir)
+        except RecipeError as e:
+            print(f"racecav train ship: {e}")
+            return 2
     model = PPO.load(ck, device="cpu")
     norm = None
     vn = ck.with_suffix(".vecnorm.pkl")
@@ -61,6 +71,8 @@ def ship(args, cfg) -> int:
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"
                       + (f"; a_T < {tc.env.brake_below} brakes" if tc.env.brake_below is not None else ""),
             "brake_below": tc.env.brake_below}
+    if recipe is not None:
+        meta["recipe"] = recipe
     dst = MODELS_DIR / f"{args.name}.npz"
     export_policy(model, dst, meta, obs_rms=norm.obs_rms if norm else None,
                   clip_obs=norm.clip_obs if norm else 10.0, epsilon=norm.epsilon if norm else 1e-8)

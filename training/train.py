@@ -3,6 +3,7 @@
     racecav train racing   [--steps N] [--run-dir DIR] [--resume] [--preset paper|fast] [...]
     racecav train overtake --heading default|reversed [--driver policy:racing] [...]
     racecav train dagger   --init-from POLICY.zip [...]  (imitate the yield teacher, training/dagger.py)
+    racecav train recipe   NAME [--chunk-steps N]          (a policy's stages from a recipe, training/recipe.py)
     racecav train select   --run-dir DIR [--trials N]      (training/select.py)
     racecav train ship     --run-dir DIR --checkpoint STEP --name racing|default|reversed
     racecav train report                                   (docs/training.md)
@@ -117,6 +118,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from racecav.training import sweep
 
     sweep.add_subcommands(sub, stages)
+    from racecav.training import recipe
+
+    recipe.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -132,6 +136,10 @@ def run(args, cfg) -> int:
         return train_dagger(args, cfg)
     if args.train_cmd == "export":
         return export_onnx(args)
+    if args.train_cmd == "recipe":
+        from racecav.training import recipe
+
+        return recipe.run(args, cfg)
     if args.train_cmd == "sweep":
         from racecav.training import sweep
 
@@ -184,29 +192,32 @@ def _ppo_kwargs(tc) -> dict:
 
 # ----------------------------------------------------------------------------------- training
 def train(args, cfg) -> int:
+    heading = args.env_heading or "default"
+    run_dir = Path(args.run_dir or RUNS_DIR / (args.stage if args.stage == "racing" else f"overtake-{heading}"))
+    opened = open_run(args, cfg, run_dir)
+    if opened is None:
+        return 2
+    return train_ppo(run_dir, *opened, int(args.steps), resume=args.resume, progress=not args.no_progress)
+
+
+def train_ppo(run_dir: Path, tc, state: dict, total: int, resume: bool, progress: bool = True) -> int:
+    """PPO on the run in ``run_dir`` (opened by open_run, or by the recipe runner) until ``total``
+    samples or a signal; ``resume``: load ``latest`` instead of starting new weights."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     torch.set_num_threads(1)
     limit_blas_threads(1)
-    heading = args.env_heading or "default"
-    run_dir = Path(args.run_dir or RUNS_DIR / (args.stage if args.stage == "racing" else f"overtake-{heading}"))
-    total = int(args.steps)
-    opened = open_run(args, cfg, run_dir)
-    if opened is None:
-        return 2
-    tc, state = opened
-
     # Env seed: the run's seed, shifted on resume so a resumed run does not replay its episodes.
     venv = make_venv(tc, seed=tc.seed + state["timesteps"])
     if tc.normalize:
-        if args.resume:
+        if resume:
             venv = VecNormalize.load(str(run_dir / "latest.vecnorm.pkl"), venv)
             venv.training = True
         else:
             venv = init_normalization(VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=tc.gamma), tc)
-    if args.resume:
+    if resume:
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
         truncate_csv(run_dir / "progress.csv", model.num_timesteps, CSV_FIELDS)
         log.info("resumed %s at %d samples", run_dir, model.num_timesteps)
@@ -223,7 +234,7 @@ def train(args, cfg) -> int:
                 print(f"racecav train: {e}")
                 return 2
     _configure_logger(model, run_dir)
-    cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=not args.no_progress)
+    cb = _make_callback_class()(run_dir, total, tc.checkpoint_every, state["wall_s"], progress=progress)
     callbacks = [cb]
     remaining = total - model.num_timesteps
     if remaining <= 0:
@@ -248,10 +259,7 @@ def open_run(args, cfg, run_dir: Path):
     """(TrainConfig, latest state) of the run in ``run_dir``: read back with ``--resume``, else
     made from the flags and recorded in a new config.json. None (after saying why) if neither."""
     if args.resume:
-        if not (run_dir / "latest.zip").is_file():
-            log.error("--resume: no %s", run_dir / "latest.zip")
-            return None
-        return load_run_config(run_dir)[0], json.loads((run_dir / "latest.json").read_text())
+        return resume_run(run_dir)
     if (run_dir / "latest.zip").exists():
         log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
         return None
@@ -260,21 +268,55 @@ def open_run(args, cfg, run_dir: Path):
     except ValueError as e:
         print(f"racecav train: {e}")
         return None
-    if tc.sde_sample_freq is not None and tc.stage == "dagger":
-        print("racecav train: --sde-sample-freq (gSDE) explores in PPO's rollouts (use it with racecav train overtake)")
+    state = new_run(tc, run_dir)
+    return None if state is None else (tc, state)
+
+
+def resume_run(run_dir: Path):
+    """(TrainConfig, latest state) of the run in ``run_dir``; None (after saying why) if none."""
+    if not (run_dir / "latest.zip").is_file():
+        log.error("--resume: no %s", run_dir / "latest.zip")
         return None
+    return load_run_config(run_dir)[0], json.loads((run_dir / "latest.json").read_text())
+
+
+def config_problem(tc) -> str | None:
+    """Why a run of ``tc`` cannot start (one line), or None."""
+    if tc.sde_sample_freq is not None and tc.stage == "dagger":
+        return "racecav train: --sde-sample-freq (gSDE) explores in PPO's rollouts (use it with racecav train overtake)"
     if tc.stage == "dagger" and (not tc.init_from or not tc.normalize):
-        print("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
-              "the imitation keeps that policy's input statistics")
+        return ("racecav train dagger: needs --init-from a policy and normalisation (--preset fast): "
+                "the imitation keeps that policy's input statistics")
+    return None
+
+
+def new_run(tc, run_dir: Path) -> dict | None:
+    """Record a new run of the TrainConfig ``tc`` in ``run_dir`` (config.json: the settings, the
+    commit, the time) and return its start state; None (after saying why) if it cannot start."""
+    if (run_dir / "latest.zip").exists():
+        log.error("%s already holds a run: use --resume or another --run-dir", run_dir)
+        return None
+    problem = config_problem(tc)
+    if problem:
+        print(problem)
         return None
     record = {"git_commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({**tc.model_dump(mode="json"), **record}, indent=2) + "\n")
-    return tc, {"timesteps": 0, "wall_s": 0.0}
+    return {"timesteps": 0, "wall_s": 0.0}
 
 
 def train_dagger(args, cfg) -> int:
     """``racecav train dagger``: a run folder as train()'s, the policy fitted by training/dagger.py."""
+    run_dir = Path(args.run_dir or RUNS_DIR / "dagger")
+    opened = open_run(args, cfg, run_dir)
+    if opened is None:
+        return 2
+    return run_dagger(run_dir, *opened, int(args.steps), resume=args.resume, progress=not args.no_progress)
+
+
+def run_dagger(run_dir: Path, tc, state: dict, total: int, resume: bool, progress: bool = True) -> int:
+    """DAgger (training/dagger.py) on the run in ``run_dir`` until ``total`` samples or a signal."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
@@ -284,13 +326,8 @@ def train_dagger(args, cfg) -> int:
 
     torch.set_num_threads(1)
     limit_blas_threads(1)
-    run_dir = Path(args.run_dir or RUNS_DIR / "dagger")
-    opened = open_run(args, cfg, run_dir)
-    if opened is None:
-        return 2
-    tc, state = opened
     fast = FastVecEnv(config=tc.env, seed=tc.seed + state["timesteps"])
-    if args.resume:
+    if resume:
         venv = VecNormalize.load(str(run_dir / "latest.vecnorm.pkl"), fast)
         model = PPO.load(run_dir / "latest.zip", env=venv, device="cpu")
     else:
@@ -298,7 +335,7 @@ def train_dagger(args, cfg) -> int:
         model = PPO("MlpPolicy", venv, seed=tc.seed, device="cpu", verbose=0, **_ppo_kwargs(tc))
         init_weights(model, Path(tc.init_from), tc.init_std, VIEWS[tc.env.lidar], tc.env.obs_stride)
     try:
-        return imitate(model, venv, tc, run_dir, state, int(args.steps), progress=not args.no_progress)
+        return imitate(model, venv, tc, run_dir, state, total, progress=progress)
     except ValueError as e:  # a teacher that cannot label this env (training/teacher.py)
         print(f"racecav train dagger: {e}")
         return 2
