@@ -88,7 +88,8 @@ def _timesteps(run: Path) -> list[int]:
         return [int(float(r["timesteps"])) for r in csv.DictReader(f)]
 
 
-def test_recipe_runs_in_chunks_resumes_and_chains(tmp_path, capsys):
+def test_recipe_runs_in_chunks_resumes_and_chains(tmp_path, capsys, monkeypatch):
+    from racecav.cli import main
     from racecav.training.recipe import config_sha256, load_recipe
 
     recipe, root = _recipe(tmp_path), tmp_path / "runs"
@@ -138,11 +139,28 @@ def test_recipe_runs_in_chunks_resumes_and_chains(tmp_path, capsys):
     assert rc == 2 and len(out.strip().splitlines()) == 1
     assert f"expected sha256 {first['end_sha256']}, got {hashlib.sha256(b'not the weights').hexdigest()}" in out
 
+    # ship --recipe: the policy's metadata names the recipe, its digest and the stage (shipped into
+    # tmp_path: the run's record goes there too, not into the repository)
+    import racecav.common.policy as policy_mod
+    import racecav.training.runs as runs_mod
+
+    monkeypatch.setattr(policy_mod, "MODELS_DIR", tmp_path / "policies")
+    monkeypatch.setattr(runs_mod, "COMMITTED", tmp_path / "records")
+    ship = ["train", "ship", "--run-dir", str(folder / "second"), "--checkpoint", "latest", "--name", "tiny"]
+    assert main([*ship, "--recipe", str(recipe)]) == 0
+    meta = json.loads((tmp_path / "policies" / "tiny.json").read_text())
+    assert meta["recipe"] == {"name": "tiny", "file": str(recipe), "sha256": _sha(recipe), "stage": "second"}
+
     # a changed setting of a started (here: finished) stage: refused, naming the key
     recipe = _recipe(tmp_path, lr=1e-4)
     rc, out = _run(capsys, recipe, "--root", root)
     assert rc == 2 and len(out.strip().splitlines()) == 1
     assert "first/config.json: differs from stage 'first' of the recipe in learning_rate " in out
+    # nor does ship name a recipe whose settings the run does not have
+    capsys.readouterr()
+    ship[3] = str(folder / "first")
+    assert main([*ship, "--recipe", str(recipe)]) == 2
+    assert "differs from stage 'first' of the recipe in learning_rate " in capsys.readouterr().out
 
 
 def test_bad_recipes_are_refused_in_one_line(tmp_path, capsys):

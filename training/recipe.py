@@ -161,15 +161,15 @@ def load_recipe(path: Path, configs: bool = True) -> Recipe:
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
-        raise RecipeError(f"{path}: no such recipe (names: {', '.join(names()) or 'none'})") from None
+        raise RecipeError(f"{shown(path)}: no such recipe (names: {', '.join(names()) or 'none'})") from None
     except tomllib.TOMLDecodeError as e:
-        raise RecipeError(f"{path}: not TOML ({e})") from None
+        raise RecipeError(f"{shown(path)}: not TOML ({e})") from None
     try:
         recipe = Recipe.model_validate(data)
     except ValidationError as e:
-        raise RecipeError(f"{path}: {_errors(e)}") from None
+        raise RecipeError(f"{shown(path)}: {_errors(e)}") from None
     if recipe.name != path.stem:
-        raise RecipeError(f"{path}: name: {recipe.name!r} must be the file's name ({path.stem!r})")
+        raise RecipeError(f"{shown(path)}: name: {recipe.name!r} must be the file's name ({path.stem!r})")
     if configs:
         from racecav.training.train import config_problem
 
@@ -177,11 +177,11 @@ def load_recipe(path: Path, configs: bool = True) -> Recipe:
             try:
                 tc = st.train_config()
             except RecipeError as e:
-                raise RecipeError(f"{path}: {e}") from None
+                raise RecipeError(f"{shown(path)}: {e}") from None
             # a stage always has a start: check the rest of what a run needs
             problem = config_problem(tc.model_copy(update={"init_from": st.start}))
             if problem:
-                raise RecipeError(f"{path}: stage {st.name!r}: {problem}")
+                raise RecipeError(f"{shown(path)}: stage {st.name!r}: {problem}")
     return recipe
 
 

@@ -257,7 +257,7 @@ def recipes_markdown() -> str:
         mpath = RECIPES / name / "manifest.json"
         done = {e["name"]: e for e in json.loads(mpath.read_text())["stages"]} if mpath.is_file() else None
         L += [f"### `racecav train recipe {name}`", "", " ".join(recipe.description.split()), "",
-              "| stage | command | start | samples | what |" + (" samples done | wall time |" if done else ""),
+              "| stage | command | start | ends at (samples) | what |" + (" samples done | wall time |" if done else ""),
               "|---|---|---|---:|---|" + ("---:|---:|" if done else "")]
         for st in recipe.stages:
             start = f"stage `{st.after}`" if st.after else f"`{st.start}` (sha256 `{st.start_sha256[:12]}`)"
@@ -269,8 +269,25 @@ def recipes_markdown() -> str:
             L.append(row)
         L += ["", (f"Samples and wall time: training/recipes/{name}/manifest.json (one training process on the "
                    "shared 2-core box)." if done else
-                   f"Not run yet: no record in training/recipes/{name}/ (`racecav train recipe {name} --record`)."), ""]
+                   f"Not run yet: no record in training/recipes/{name}/ (`racecav train recipe {name} --record`)."),
+              "", shipped_from(name), ""]
     return "\n".join(L)
+
+
+def shipped_from(name: str) -> str:
+    """Whether the shipped policy ``name`` is the output of the recipe ``name`` (its metadata's
+    ``recipe``, written by ``racecav train ship --recipe``), and of this version of the file."""
+    from racecav.common.policy import MODELS_DIR
+    from racecav.training.recipe import RECIPES, sha256
+
+    meta_path = MODELS_DIR / f"{name}.json"
+    rec = json.loads(meta_path.read_text()).get("recipe") if meta_path.is_file() else None
+    if not rec or rec.get("name") != name:
+        return f"The shipped `{name}` policy was not built by this recipe."
+    same = rec.get("sha256") == sha256(RECIPES / f"{name}.toml")
+    return (f"The shipped `{name}` policy is stage `{rec.get('stage')}` of "
+            + ("this recipe" if same else f"an earlier version of this file (sha256 `{str(rec.get('sha256'))[:12]}`)")
+            + f" (common/data/policies/{name}.json).")
 
 
 def ablation_rows() -> list[dict]:
