@@ -180,3 +180,10 @@ def test_bad_recipes_are_refused_in_one_line(tmp_path, capsys):
         assert rc == 2 and len(out.strip().splitlines()) == 1 and field in out, out
     rc, out = _run(capsys, _recipe(tmp_path, extra='stagez = 1\n'), "--root", tmp_path / "runs")
     assert rc == 2 and "stagez: unknown field" in out
+    # training data that is not there (a suite not generated on this clone): refused before a run folder
+    nosuite = _stage("first", START, 64, sha=_sha(ROOT / START)).replace(
+        "n_envs = 4", 'n_envs = 4\nscenarios = "no-such-suite"\nscenario_share = 0.5')
+    rc, out = _run(capsys, _recipe(tmp_path, first=nosuite), "--root", tmp_path / "runs")
+    assert rc == 2 and len(out.strip().splitlines()) == 1
+    assert "env.scenarios: suite no-such-suite" in out and "racecav suite generate --name no-such-suite" in out
+    assert not (tmp_path / "runs" / "tiny" / "first").exists()

@@ -13,8 +13,9 @@ Each stage runs in ROOT/NAME/STAGE (default runs/recipes), a run folder as train
 writes it, so a stopped stage resumes (``--resume``) after its config.json was checked against
 the recipe. ``--chunk-steps N`` stops after N more samples (a checkpoint first): a long recipe
 runs in chunks across sessions. ROOT/NAME/manifest.json is rewritten after every chunk (the
-recipe's digest; per stage its start and digest, the config's digest, samples, wall time, the
-final checkpoint's digest). ``--record`` copies what a fresh clone needs into
+recipe's digest; per stage its start and digest, the config's digest, the digest of its
+scenario files (a generated suite is made again on a fresh clone), samples, wall time, the final
+checkpoint's digest). ``--record`` copies what a fresh clone needs into
 training/recipes/NAME/ (committed): the manifest, each stage's config.json and progress.csv, each
 finished stage's final checkpoint; a ``stage:X`` start is taken from there when ROOT has no
 finished X, checked against the digest the manifest recorded.
@@ -61,7 +62,7 @@ class Stage(BaseModel):
     command: Literal["racing", "overtake", "dagger"]
     """The ``racecav train`` sub-command that runs it (its TrainConfig.stage)."""
     steps: int = Field(ge=1)
-    """The sample count at which the stage ends."""
+    """The sample count at which the stage ends (each stage is a new run: counted from its start)."""
     start: str = Field(min_length=1)
     """A committed SB3 zip (repo-relative path, with start_sha256) or ``stage:<earlier stage>``."""
     start_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
@@ -204,6 +205,27 @@ def config_sha256(tc) -> str:
     """The digest of a stage's settings: sha256 of their canonical JSON (sorted keys, no spaces)."""
     text = json.dumps(settings(tc), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def scenarios_sha256(tc) -> str | None:
+    """The digest of a run's scenario episodes (the train split of ``env.scenarios``: each file's
+    family and bytes, in order); None without scenarios. A generated suite (runs/suites/, not
+    committed) is made again on a fresh clone: this says whether it is the same.
+
+    :raises RecipeError: a suite that is not there (naming the command that makes it).
+    """
+    if not tc.env.scenarios:
+        return None
+    from racecav.common.scenario import scenario_sources
+
+    try:
+        sources = scenario_sources(tc.env.scenarios, "train")
+    except (ValueError, FileNotFoundError) as e:
+        raise RecipeError(f"env.scenarios: {e}") from None
+    h = hashlib.sha256()
+    for f, family in sources:
+        h.update(family.encode() + b"\0" + Path(f).read_bytes() + b"\0")
+    return h.hexdigest()
 
 
 def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
@@ -368,14 +390,21 @@ class Runner:
                     log.info("stage %s: done (%d samples)", st.name, latest["timesteps"])
                     continue
                 tc, state, resume = load_run_config(run)[0], latest, True
+                started = json.loads((run / "start.json").read_text()) if (run / "start.json").is_file() else {}
+                if started.get("scenarios_sha256", None) != scenarios_sha256(tc):
+                    log.warning("stage %s: its scenarios (%s) are not the files it started with (another "
+                                "generated suite?): scenarios_sha256 %s, now %s", st.name, tc.env.scenarios,
+                                started.get("scenarios_sha256"), scenarios_sha256(tc))
             else:
                 start, digest = self.start_of(st)
+                data = scenarios_sha256(tc)  # before the run folder: a missing suite leaves none
                 tc = tc.model_copy(update={"init_from": str(start)})
                 state = new_run(tc, run)
                 if state is None:
                     return 2
                 (run / "start.json").write_text(json.dumps(
-                    {"start": st.start, "start_path": shown(start), "start_sha256": digest}, indent=2) + "\n")
+                    {"start": st.start, "start_path": shown(start), "start_sha256": digest,
+                     "scenarios_sha256": data}, indent=2) + "\n")
                 resume = False
             before = state["timesteps"]
             total = st.steps if budget is None else min(st.steps, before + budget)
