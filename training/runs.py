@@ -122,8 +122,13 @@ def drop_removed(data: dict, run_dir) -> None:
 
     check(data, REMOVED_SETTINGS, "")
     check(data.get("env", {}), REMOVED_ENV_SETTINGS, "env.")
-    # the teacher of a PPO run was never used (only dagger runs imitate); dagger's other teachers are gone
-    if data.get("expert") not in (None, "yield"):
+    # the teacher of a PPO run was never used (only dagger runs imitate); dagger's other teachers are
+    # gone: the ones TrainConfig.expert does not name
+    from typing import get_args
+
+    from racecav.common.config import TrainConfig
+
+    if data.get("expert") not in (None, *get_args(TrainConfig.model_fields["expert"].annotation)):
         if data.get("stage") == "dagger":
             raise ValueError(f"{run_dir}/config.json: expert = {data['expert']!r} is a teacher removed from "
                              f"training/ (docs/training.md); its code is at commit {EXPERIMENTS_COMMIT}")
