@@ -119,7 +119,8 @@ class Recipe(BaseModel):
             if st.name in seen:
                 raise ValueError(f"stages.{i}.name: {st.name!r} twice")
             if st.after is not None and st.after not in seen:
-                raise ValueError(f"stages.{i}.start: {st.start!r} is not an earlier stage ({', '.join(seen) or 'none'})")
+                raise ValueError(f"stages.{i}.start: {st.start!r} is not an earlier stage "
+                                 f"({', '.join(seen) or 'none'})")
             seen.append(st.name)
         return self
 
@@ -327,7 +328,8 @@ class Runner:
             ck = self.record_dir / src.name / entry["end_checkpoint"]
             got = sha256(ck) if ck.is_file() else "no such file"
             if got != entry["end_sha256"]:
-                raise RecipeError(f"stage {st.name!r}: start {shown(ck)}: expected sha256 {entry['end_sha256']}, got {got}")
+                raise RecipeError(f"stage {st.name!r}: start {shown(ck)}: expected sha256 {entry['end_sha256']}, "
+                                  f"got {got}")
             return ck, got
         raise RecipeError(f"stage {st.name!r}: starts from stage {src.name!r}, which has not finished "
                           f"(no finished run in {run}, none recorded in {self.record_dir})")
@@ -391,10 +393,10 @@ class Runner:
                     continue
                 tc, state, resume = load_run_config(run)[0], latest, True
                 started = json.loads((run / "start.json").read_text()) if (run / "start.json").is_file() else {}
-                if started.get("scenarios_sha256", None) != scenarios_sha256(tc):
+                if started.get("scenarios_sha256") != (now := scenarios_sha256(tc)):
                     log.warning("stage %s: its scenarios (%s) are not the files it started with (another "
                                 "generated suite?): scenarios_sha256 %s, now %s", st.name, tc.env.scenarios,
-                                started.get("scenarios_sha256"), scenarios_sha256(tc))
+                                started.get("scenarios_sha256"), now)
             else:
                 start, digest = self.start_of(st)
                 data = scenarios_sha256(tc)  # before the run folder: a missing suite leaves none
@@ -449,7 +451,8 @@ class Runner:
                 ck = _final_checkpoint(run, _latest(run))
                 shutil.copyfile(ck, out / entry["end_checkpoint"])
                 if ck.with_suffix(".vecnorm.pkl").is_file():
-                    shutil.copyfile(ck.with_suffix(".vecnorm.pkl"), (out / entry["end_checkpoint"]).with_suffix(".vecnorm.pkl"))
+                    shutil.copyfile(ck.with_suffix(".vecnorm.pkl"),
+                                    (out / entry["end_checkpoint"]).with_suffix(".vecnorm.pkl"))
         dest.mkdir(parents=True, exist_ok=True)
         (dest / "manifest.json").write_text(json.dumps(m, indent=2) + "\n")
         return dest

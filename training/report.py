@@ -243,35 +243,43 @@ def recipes_markdown() -> str:
     from racecav.training.recipe import RECIPES, load_recipe, names
 
     L = ["", "## Recipes", "",
-         "A shipped policy is rebuilt by its recipe: `racecav train recipe NAME` (training/recipe.py) runs the stages of",
-         "training/recipes/NAME.toml in order, each a run of `racecav train racing|overtake|dagger` with its full",
-         "settings (a TrainConfig, common/config.py) and its start: a committed zip named by its sha256, or an earlier",
-         "stage's final checkpoint. A stage runs in runs/recipes/NAME/STAGE and resumes where it stopped, after its",
-         "config.json was checked against the recipe; `--chunk-steps N` stops after N more samples (a checkpoint",
-         "first), so a long recipe runs in chunks across sessions. runs/recipes/NAME/manifest.json records each",
-         "stage's start and its digest, the digest of its settings, samples, wall time and the final checkpoint's",
-         "digest; `racecav train recipe NAME --record` copies it, the stage records and each finished stage's final",
-         "weights to training/recipes/NAME/ (committed), from which a later stage starts on a fresh clone.", ""]
+         "A shipped policy is rebuilt by its recipe: `racecav train recipe NAME` (training/recipe.py) runs the",
+         "stages of training/recipes/NAME.toml in order, each a run of `racecav train racing|overtake|dagger` with",
+         "its full settings (a TrainConfig, common/config.py) and its start: a committed zip named by its sha256,",
+         "or an earlier stage's final checkpoint. A stage runs in runs/recipes/NAME/STAGE and resumes where it",
+         "stopped, after its config.json was checked against the recipe; `--chunk-steps N` stops after N more",
+         "samples (a checkpoint first), so a long recipe runs in chunks across sessions. Each stage counts its",
+         "samples from its own start. runs/recipes/NAME/manifest.json records each stage's start and its digest,",
+         "the digests of its settings and of its scenario files (a generated suite is made again on a fresh clone),",
+         "samples, wall time and the final checkpoint's digest; `racecav train recipe NAME --record` copies it, the",
+         "stage records and each finished stage's final weights to training/recipes/NAME/ (committed), from which",
+         "a later stage starts on a fresh clone.", ""]
     for name in names():
         recipe = load_recipe(RECIPES / f"{name}.toml", configs=False)
         mpath = RECIPES / name / "manifest.json"
         done = {e["name"]: e for e in json.loads(mpath.read_text())["stages"]} if mpath.is_file() else None
         L += [f"### `racecav train recipe {name}`", "", " ".join(recipe.description.split()), "",
-              "| stage | command | start | ends at (samples) | what |" + (" samples done | wall time |" if done else ""),
+              "| stage | command | start | ends at (samples) | what |"
+              + (" samples done | wall time |" if done else ""),
               "|---|---|---|---:|---|" + ("---:|---:|" if done else "")]
         for st in recipe.stages:
             start = f"stage `{st.after}`" if st.after else f"`{st.start}` (sha256 `{st.start_sha256[:12]}`)"
             row = f"| {st.name} | {st.command} | {start} | {st.steps / 1e6:g} M | {' '.join(st.what.split())} |"
             if done:
                 e = done.get(st.name, {})
-                row += (f" {e.get('samples', 0) / 1e6:.2f} M | {e.get('wall_s', 0) / 3600:.1f} h |" if e.get("samples")
+                row += (f" {e['samples'] / 1e6:.2f} M | {_hours(e.get('wall_s', 0))} |" if e.get("samples")
                         else " - | - |")
             L.append(row)
-        L += ["", (f"Samples and wall time: training/recipes/{name}/manifest.json (one training process on the "
-                   "shared 2-core box)." if done else
+        total = sum(e.get("wall_s", 0) for e in done.values()) if done else 0
+        L += ["", (f"Samples and wall time: training/recipes/{name}/manifest.json, {_hours(total)} in all (one "
+                   "training process on the shared 2-core box)." if done else
                    f"Not run yet: no record in training/recipes/{name}/ (`racecav train recipe {name} --record`)."),
               "", shipped_from(name), ""]
     return "\n".join(L)
+
+
+def _hours(wall_s: float) -> str:
+    return f"{wall_s / 60:.0f} min" if wall_s < 7200 else f"{wall_s / 3600:.1f} h"
 
 
 def shipped_from(name: str) -> str:
