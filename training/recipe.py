@@ -481,7 +481,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("recipe", metavar="NAME_OR_PATH", help="a recipe name (training/recipes/NAME.toml) or a .toml file")
     p.add_argument("--stage", help="run only this stage")
     p.add_argument("--chunk-steps", type=lambda v: int(float(v)), metavar="N",
-                   help="run at most N more samples, then stop after a checkpoint (run again to go on)")
+                   help="run at most N more samples (rounded up to whole rollouts), then stop after a "
+                        "checkpoint (run again to go on)")
     p.add_argument("--root", type=Path, default=ROOT, help=f"where the stages run: ROOT/NAME/STAGE (default {ROOT})")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
     p.add_argument("--record", nargs="?", const="", metavar="DIR", type=str,
