@@ -180,3 +180,40 @@ def test_bad_recipes_are_refused_in_one_line(tmp_path, capsys):
     assert rc == 2 and len(out.strip().splitlines()) == 1
     assert "env.scenarios: suite no-such-suite" in out and "racecav suite generate --name no-such-suite" in out
     assert not (tmp_path / "runs" / "tiny" / "first").exists()
+
+
+def test_each_avoid_stage_runs_a_short_chunk_and_resumes(tmp_path, capsys):
+    """The committed avoid recipe's stages, as they are but small (4 worlds of 8 steps, a few
+    hundred samples) and on a small generated roads sample instead of the suites: each stage
+    starts (the first from the committed start, checked by digest), stops after a chunk, resumes
+    and chains (the predictive teacher, the map redraws and DAgger's fit on every stage)."""
+    import tomli_w
+
+    from racecav.evaluation.benchmark import generate, load_benchmark
+    from racecav.training.recipe import load_recipe, resolve
+
+    bf = load_benchmark("roads")
+    bf = bf.model_copy(update={"families": [f for f in bf.families if f.name in ("crossing", "from-rest", "braking")]})
+    generate(bf, tmp_path / "roads", seed=0, splits=("train",), progress=False, n_train=1)
+    small = {"n_steps": 8, "batch_size": 16, "grad_steps": 2, "dataset_max": 4096, "checkpoint_every": 32,
+             "map_resample_every": 1}
+    stages = []
+    for st in load_recipe(resolve("avoid")).stages:
+        cfg = {**st.config, **small, "env": {**st.config["env"], "n_envs": 4, "scenario_maps": 2,
+                                            "scenarios": str(tmp_path / "roads")}}
+        stages.append({**st.model_dump(exclude_none=True), "steps": 64, "config": cfg})
+    path = tmp_path / "small.toml"
+    path.write_text(tomli_w.dumps({"name": "small", "description": "the avoid recipe, small", "stages": stages}))
+    folder = tmp_path / "runs" / "small"
+    names = [s["name"] for s in stages]
+    for i, name in enumerate(names):
+        assert _run(capsys, path, "--root", tmp_path / "runs", "--chunk-steps", 32)[0] == 0
+        assert _timesteps(folder / name) == [32]  # stopped part-way
+        assert _run(capsys, path, "--root", tmp_path / "runs", "--chunk-steps", 32)[0] == 0
+        assert _timesteps(folder / name) == [32, 64]  # resumed to its end
+        m = json.loads((folder / "manifest.json").read_text())
+        assert m["stages"][i]["done"]
+        if i:
+            assert m["stages"][i]["start_sha256"] == m["stages"][i - 1]["end_sha256"]
+        else:
+            assert m["stages"][0]["start_sha256"] == _sha(ROOT / START)
