@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "actuator": ("racecav.services.actuator.service", "VESC motor and steering from DriveCommands, with watchdog and e-stop"),
     "emulate": ("racecav.services.emulate", "device emulators on a pty: rplidar | vesc"),
     "sim": ("racecav.services.sim.service", "PyBullet world playing the car: Scan/state out, DriveCommand in (realtime or lockstep)"),
-    "train": ("racecav.training.train", "PPO training of the racing/overtaking policies (resumable), checkpoint selection, shipping, report"),
+    "train": ("racecav.training.cli", "PPO training of the racing/overtaking policies (resumable), checkpoint selection, shipping, report"),
     "deploy": ("racecav.deploy.command", "install on the car (venv, systemd units, udev, config) and make bus credentials"),
     "scripted": ("racecav.services.sim.scripted", "controller answering each scan with a scripted command program (tests, demos)"),
     "policy": ("racecav.services.policy.service", "DRL policy controller: newest Scan -> numpy MLP -> DriveCommand"),

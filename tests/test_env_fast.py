@@ -426,7 +426,7 @@ def test_curriculum_draws_the_failing_family_more(tmp_path):
 def test_curriculum_flag_is_recorded():
     import argparse
 
-    from racecav.training.train import add_arguments, config_from_args
+    from racecav.training.cli import add_arguments, config_from_args
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
@@ -447,7 +447,7 @@ def test_curriculum_boost_weights_a_family_and_names_a_wrong_one(tmp_path):
 
     from racecav.common.config import EnvConfig
     from racecav.common.scenario import SCENARIOS_DIR
-    from racecav.training.train import add_arguments, config_from_args
+    from racecav.training.cli import add_arguments, config_from_args
 
     for name in ("right-to-left", "conflict-right-to-left"):
         shutil.copy(SCENARIOS_DIR / f"{name}.toml", tmp_path / f"{name}.toml")
