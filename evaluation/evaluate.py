@@ -106,6 +106,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "CONTROLLER@PERTURBATION")
     p.add_argument("--robust-trials", type=int, default=30,
                    help="--table --sections robust: trials per scenario cell under each perturbation (default 30)")
+    p.add_argument("--robust-suite-trials", type=int, default=1,
+                   help="--table --sections robust: trials per file of the conflict suite's test split under "
+                        "each preset and the ideal world (default 1; 0: no suite part)")
     p.add_argument("--robust-controllers", default="drl-avoid,drl-reversed,mpc-apf",
                    help="--table --sections robust: the controllers (default drl-avoid,drl-reversed,mpc-apf)")
     p.add_argument("--record", nargs="?", const=True, type=Path, metavar="DIR",

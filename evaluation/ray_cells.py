@@ -79,6 +79,10 @@ class Task:
     """The ``--config`` file's text."""
     env: dict[str, str] = field(default_factory=dict)
     """The driver's RACECAV_* settings (a remote node has none of them)."""
+    perturb: dict[str, float] | None = None
+    """The sim's perturbation (PerturbConfig.active(); the robust section's cells): the controller
+    then runs as harness.perturbed names it, under the run key the driver expects; None: the
+    configuration's sim.perturb, as without --ray."""
 
 
 def run_task(task: Task) -> dict:
@@ -88,9 +92,9 @@ def run_task(task: Task) -> dict:
     import platform
 
     from racecav.common import procs
-    from racecav.common.config import load_config
+    from racecav.common.config import PerturbConfig, load_config
     from racecav.common.scenario import SCENARIOS_DIR
-    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError
+    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, perturbed
     from racecav.evaluation.trials import NoBar, run_trials
 
     wall0 = time.monotonic()
@@ -114,8 +118,10 @@ def run_task(task: Task) -> dict:
                 refs.append((str(path), path))
         try:
             cfg = load_config()
-            with Harness(cfg, CONTROLLERS[task.controller], task.mode, refs[0][0], tmp / "logs", task.rtf,
-                         safety=task.safety, compute_charge=task.compute_charge) as h:
+            p = None if task.perturb is None else PerturbConfig.model_validate(task.perturb)
+            ctrl = CONTROLLERS[task.controller] if p is None else perturbed(CONTROLLERS[task.controller], p)
+            with Harness(cfg, ctrl, task.mode, refs[0][0], tmp / "logs", task.rtf,
+                         safety=task.safety, compute_charge=task.compute_charge, perturb=p) as h:
                 start_s = time.monotonic() - wall0
                 for k, (it, (ref, path)) in enumerate(zip(task.items, refs)):
                     jsonl = tmp / f"{k}.jsonl"
@@ -181,11 +187,12 @@ def _group(section: str, suite_name: str) -> str:
     return f"suite-{suite_name}" + (f"-{section.split('/', 1)[1]}" if section.startswith("roads/") else "")
 
 
-def table_tasks(args, runs, cells: dict, seeds: dict, suites: dict) -> list[tuple[Task, list]]:
+def table_tasks(args, runs, cells: dict, seeds: dict, suites: dict, robust_rows: list = ()) -> list[tuple[Task, list]]:
     """(Task, the RowCells it fills) for every cell of the table the store does not hold: one task
-    per scenario cell, a suite's files in chunks of about ``--trials`` trials."""
+    per scenario cell, a suite's files in chunks of about ``--trials`` trials; and so for the robust
+    section's rows (``robust_rows``: robust.Row; each task carries its row's perturbation)."""
     from racecav.common.scenario import SCENARIOS_DIR
-    from racecav.evaluation.harness import CONTROLLERS
+    from racecav.evaluation.harness import CONTROLLERS, perturbed
 
     run_id = uuid.uuid4().hex[:8]
     files = {(sec, c.path.name): c.path.resolve() for sec, (_, cs) in suites.items() for c in cs}
@@ -212,6 +219,16 @@ def table_tasks(args, runs, cells: dict, seeds: dict, suites: dict) -> list[tupl
                                        c.trials, seeds[c.cell], True, ctrl, on, args.mode, c.jsonl, args.resume))
             tag = f"{run_id}-{len(tasks)}"
             tasks.append((Task(tag=tag, items=items, **_task_base(args, name, on)), chunk))
+    for row in robust_rows:  # robust.Cell: its own group, store name, reference and seed
+        ctrl = perturbed(CONTROLLERS[row.name], row.perturb)
+        scen = [c for c in row.todo if c.shipped]
+        files = [c for c in row.todo if not c.shipped]
+        n = max(1, trials // max(1, max((c.trials for c in files), default=1)))
+        for chunk in [[c] for c in scen] + [files[i:i + n] for i in range(0, len(files), n)]:
+            items = [_item(c.group, c.cell, c.ref, c.path, c.shipped, c.trials, c.seed, False, ctrl, False, args.mode,
+                           c.jsonl, args.resume) for c in chunk]
+            tasks.append((Task(tag=f"{run_id}-{len(tasks)}", items=items, perturb=row.perturb.active(),
+                               **_task_base(args, row.name, False)), chunk))
     return tasks
 
 
@@ -301,12 +318,13 @@ def records(task: Task, recs: list[dict]):
         yield it, res, rec["jsonl"]
 
 
-def run_table(args, runs, cells: dict, seeds: dict, suites: dict, store, total: int, initial: int) -> int:
-    """``racecav eval --table --ray``: every cell the store lacks, as a Ray task; their records go to
-    the cells' JSONL and the store. The table then writes its document from them (table.py);
-    ``initial``: the trials it already has."""
+def run_table(args, runs, cells: dict, seeds: dict, suites: dict, store, total: int, initial: int,
+              robust_rows: list = ()) -> int:
+    """``racecav eval --table --ray``: every cell the store lacks (the robust section's rows too), as
+    a Ray task; their records go to the cells' JSONL and the store. The table then writes its
+    document from them (table.py); ``initial``: the trials it already has."""
     try:
-        tasks = table_tasks(args, runs, cells, seeds, suites)
+        tasks = table_tasks(args, runs, cells, seeds, suites, robust_rows)
     except ValueError as e:
         print(f"racecav eval --table --ray: {e}", file=sys.stderr)
         return 2
@@ -325,12 +343,13 @@ def run_table(args, runs, cells: dict, seeds: dict, suites: dict, store, total: 
     return run_tasks(args, tasks, write, total, initial, args.out_dir / "table" / "logs" / "ray-cells.csv")
 
 
-def run_suite(args, cells: list, out: Path) -> tuple[dict, str]:
+def run_suite(args, cells: list, out: Path, perturb=None) -> tuple[dict, str]:
     """``racecav eval --suite S --controller C --ray``: the split's files in chunks of about
-    ``--trials`` (default 100) trials, each a Ray task. Returns ({file: RunResult}, error text)."""
-    from racecav.evaluation.harness import CONTROLLERS
+    ``--trials`` (default 100) trials, each a Ray task (``perturb``: the sim's, ``--perturb``).
+    Returns ({file: RunResult}, error text)."""
+    from racecav.evaluation.harness import CONTROLLERS, perturbed
 
-    ctrl = CONTROLLERS[args.controller]
+    ctrl = perturbed(CONTROLLERS[args.controller], perturb)
     k, seed = args.trials_per_scenario, args.seed if args.seed is not None else 0
     n = max(1, (args.trials or 100) // k)
     run_id, tasks, results = uuid.uuid4().hex[:8], [], {}
@@ -338,7 +357,8 @@ def run_suite(args, cells: list, out: Path) -> tuple[dict, str]:
         for i in range(0, len(cells), n):
             items = [_item("suite", c.path.name, str(c.path.resolve()), c.path.resolve(), False, k, seed, False, ctrl,
                            False, args.mode, out / f"{c.path.stem}.jsonl", args.resume) for c in cells[i:i + n]]
-            tasks.append((Task(tag=f"{run_id}-{len(tasks)}", items=items, **_task_base(args, ctrl.name, False)), None))
+            tasks.append((Task(tag=f"{run_id}-{len(tasks)}", items=items, **_task_base(args, args.controller, False),
+                               perturb=None if perturb is None else perturb.active()), None))
     except ValueError as e:
         return results, str(e)
 

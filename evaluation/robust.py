@@ -4,16 +4,21 @@ Each controller of ``--robust-controllers`` runs the conflict-timed scenarios un
 perturbation of :func:`perturbations`: the ideal world, the presets of
 common/data/perturbations.toml, and the points of three sweeps (added latency, range noise,
 friction), ``--robust-trials`` seeded trials per cell, the scenarios' own seeds (the same trials
-as the conflict section's first ones). One harness per (controller, perturbation): the sim runs
-with ``sim.perturb``. Cells go to the store (ROW.robust.json.gz, cell SCENARIO@PERTURBATION,
-their run key carrying the perturbation: evaluation/harness.perturbed), so ``--resume`` and
-``--from-store`` work as for the other sections. The document gets the success per controller and
-perturbation (pooled over the three scenarios, and per scenario), where each controller breaks
-(more than BREAK_POINTS below its own success in the ideal world) and the degradation plots.
+as the conflict section's first ones). Under the ideal world and each preset it also runs the
+conflict suite's test split (the suite section's files), ``--robust-suite-trials`` trials per file
+(0: not). One harness per (controller, perturbation), a :class:`Row`: the sim runs with
+``sim.perturb``. Cells go to the store (ROW.robust.json.gz, cell SCENARIO@PERTURBATION;
+ROW.robust-suite-NAME.json.gz, cell FILE@PERTURBATION; their run key carrying the perturbation:
+evaluation/harness.perturbed), so ``--resume`` and ``--from-store`` work as for the other sections;
+``--jobs`` and ``--ray`` measure the rows through the table's own dispatch (table.py). The document
+gets the success per controller and perturbation (pooled over the three scenarios, and per
+scenario), the suite's under the presets, where each controller breaks (more than BREAK_POINTS
+below its own success in the ideal world) and the degradation plots (the conflict-timed scenarios).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from racecav.common import registry
@@ -60,62 +65,130 @@ def cell_name(scenario: str, p: PerturbConfig) -> str:
     return f"{scenario}@{p.text()}"
 
 
-def run(args, cfg, store, out: Path, from_store: bool):
-    """Every cell of the section, from the store (``--resume``) or measured.
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the section: a conflict-timed scenario or a suite test file, under one perturbation."""
 
-    :returns: ({(controller, perturbation text, scenario): RunResult}, error or None, lacking
-        cells (``--from-store``: the cells the store does not hold)).
-    """
+    group: str
+    """Its store group: "robust" (the conflict-timed scenarios) or "robust-suite-NAME"."""
+    cell: str
+    """Its name in the store: SCENARIO@PERTURBATION or FILE@PERTURBATION."""
+    what: str
+    """The scenario's name or the suite file's name (the results' third key)."""
+    ref: str
+    """What the sim loads: a shipped scenario's name or a file's absolute path."""
+    path: Path
+    seed: int
+    trials: int
+    jsonl: Path
+    """Its resumable per-trial records under --out-dir."""
+    stored: object = None
+    """The committed complete cell (RunResult) when --resume may use it, else None."""
+
+    @property
+    def shipped(self) -> bool:
+        """A shipped scenario (installed on every node), not a suite file (it travels with a Ray task)."""
+        return self.group == "robust"
+
+
+@dataclass
+class Row:
+    """What one harness runs: a controller under one perturbation, over its cells."""
+
+    name: str
+    perturb: PerturbConfig
+    cells: list = field(default_factory=list)
+
+    @property
+    def todo(self) -> list[Cell]:
+        return [c for c in self.cells if c.stored is None]
+
+
+def suite_trials(args) -> int:
+    """``--robust-suite-trials``: trials per suite test file under each preset (0: no suite part)."""
+    return getattr(args, "robust_suite_trials", 0) or 0
+
+
+def plan(args, store, out: Path, suite: tuple[str, list] | None = None) -> list[Row]:
+    """Every row of the section with what the store holds of its cells (``--resume``).
+
+    :param suite: (suite name, test cells) of the suite part (table.suite_split), None without it:
+        the presets and the ideal world then also run every file of the split."""
     from racecav.common.scenario import SCENARIOS_DIR, load_scenario
-    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, perturbed
-    from racecav.evaluation.trials import NoBar, cell_key, run_trials
+    from racecav.evaluation.harness import CONTROLLERS, perturbed
+    from racecav.evaluation.trials import cell_key
 
-    trials = args.robust_trials
-    scen = list(registry.CONFLICT_SCENARIOS)
-    seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in scen}
-    results, lacking, error = {}, [], None
-    todo = []  # (controller, perturbation) pairs with a cell to measure
+    trials, k = args.robust_trials, suite_trials(args)
+    seeds = {s: (args.seed if args.seed is not None else load_scenario(s).seed) for s in registry.CONFLICT_SCENARIOS}
+    on_suite = {p.text() for lb, p in perturbations() if lb == "nominal" or lb in PRESETS}
+    rows = []
     for name in controllers(args):
         for _, p in perturbations():
             ctrl = perturbed(CONTROLLERS[name], p)
-            missing_here = False
-            for sc in scen:
-                key = cell_key(ctrl, False, args.mode, SCENARIOS_DIR / f"{sc}.toml", seeds[sc])
-                hit = store.get(name, "robust", cell_name(sc, p), key, trials) if args.resume else None
-                if hit is not None:
-                    results[(name, p.text(), sc)] = hit
-                else:
-                    missing_here = True
-                    lacking.append(f"{name} {cell_name(sc, p)}")
-            if missing_here:
-                todo.append((name, p))
+
+            def cell(group, what, ref, path, seed, n, jsonl):
+                key = cell_key(ctrl, False, args.mode, path, seed)
+                hit = store.get(name, group, f"{what}@{p.text()}", key, n) if args.resume else None
+                return Cell(group, f"{what}@{p.text()}", what, ref, path, seed, n, jsonl, hit)
+
+            stem = f"{name}-{p.text()}"
+            cells = [cell("robust", sc, sc, SCENARIOS_DIR / f"{sc}.toml", seeds[sc], trials,
+                          out / "robust" / f"{stem}-{sc}.jsonl") for sc in registry.CONFLICT_SCENARIOS]
+            if suite is not None and k > 0 and p.text() in on_suite:
+                suite_name, files = suite
+                cells += [cell(f"robust-suite-{suite_name}", c.path.name, str(c.path.resolve()), c.path.resolve(),
+                               args.seed or 0, k, out / "robust" / f"suite-{suite_name}" / stem / f"{c.path.stem}.jsonl")
+                          for c in files]
+            rows.append(Row(name, p, cells))
+    return rows
+
+
+def run(args, cfg, store, out: Path, from_store: bool, suite: tuple[str, list] | None = None):
+    """Every cell of the section, from the store (``--resume``) or measured here (:func:`run_rows`;
+    ``--jobs`` and ``--ray`` measure them before, through table.py's dispatch).
+
+    :returns: ({(controller, perturbation text, scenario or suite file): RunResult}, error or None,
+        lacking cells (``--from-store``: the cells the store does not hold)).
+    """
+    rows = plan(args, store, out, suite)
+    results = {(r.name, r.perturb.text(), c.what): c.stored for r in rows for c in r.cells if c.stored is not None}
+    lacking = [f"{r.name} {c.cell}" for r in rows for c in r.todo]
+    todo = [r for r in rows if r.todo]
     if from_store or not todo:
         return results, None, lacking
+    got, error = run_rows(args, cfg, store, out, todo)
+    return {**results, **got}, error, []
+
+
+def run_rows(args, cfg, store, out: Path, rows: list[Row]):
+    """Measure the rows' unstored cells in this process, one harness per row; complete cells go to
+    the store. Returns ({(controller, perturbation text, scenario or file): RunResult}, error or None)."""
     from tqdm import tqdm
 
-    total = len(todo) * len(scen) * trials
+    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, perturbed
+    from racecav.evaluation.trials import NoBar, run_trials
+
+    results, error = {}, None
+    total = sum(c.trials for r in rows for c in r.todo)
     bar = NoBar() if args.no_progress else tqdm(total=total, unit="trial", desc="robust", dynamic_ncols=True,
                                                  mininterval=1.0)
     try:
-        for name, p in todo:
-            ctrl = perturbed(CONTROLLERS[name], p)
+        for r in rows:
+            ctrl = perturbed(CONTROLLERS[r.name], r.perturb)
             bar.set_description_str(ctrl.name)
-            stem = f"{name}-{p.text()}"
-            with Harness(cfg, ctrl, args.mode, scen[0], out / "robust" / "logs" / stem, args.real_time_factor,
-                         perturb=p) as h:
-                for sc in scen:
-                    res, error = run_trials(h, sc, SCENARIOS_DIR / f"{sc}.toml", trials, seeds[sc],
-                                            out / "robust" / f"{stem}-{sc}.jsonl", args.resume, bar=bar,
-                                            keep_trajectory=False,
-                                            store=(store, name, "robust", cell_name(sc, p)))
-                    results[(name, p.text(), sc)] = res
+            with Harness(cfg, ctrl, args.mode, r.cells[0].ref, out / "robust" / "logs" / f"{r.name}-{r.perturb.text()}",
+                         args.real_time_factor, perturb=r.perturb) as h:
+                for c in r.todo:
+                    res, error = run_trials(h, c.ref, c.path, c.trials, c.seed, c.jsonl, args.resume, bar=bar,
+                                            keep_trajectory=False, store=(store, r.name, c.group, c.cell))
+                    results[(r.name, r.perturb.text(), c.what)] = res
                     if error is not None:
                         raise error
     except (HarnessError, Exception, KeyboardInterrupt) as e:
         error = e
     finally:
         bar.close()
-    return results, error, []
+    return results, error
 
 
 def _pooled(results: dict, name: str, text: str):
@@ -140,8 +213,17 @@ def _rate(pooled) -> float | None:
     return None if pooled is None or not pooled[1] else 100.0 * pooled[0] / pooled[1]
 
 
-def section(results: dict, args, img: Path, doc: Path, label) -> list[str]:
-    """The document's robustness section; ``label(controller)`` is the table's row label."""
+def _suite_pooled(results: dict, name: str, text: str, files: list[str]):
+    """(successes, trials) over the suite part's files, or None if a file's cell is absent."""
+    cells = [results.get((name, text, f)) for f in files]
+    if not files or any(c is None for c in cells):
+        return None
+    return sum(c.summary.successes for c in cells), sum(c.summary.trials for c in cells)
+
+
+def section(results: dict, args, img: Path, doc: Path, label, suite: tuple[str, list] | None = None) -> list[str]:
+    """The document's robustness section; ``label(controller)`` is the table's row label; ``suite``:
+    the suite part's (suite name, test cells), None without it."""
     from racecav.evaluation.plots import plot_degradation
 
     names = controllers(args)
@@ -174,6 +256,21 @@ def section(results: dict, args, img: Path, doc: Path, label) -> list[str]:
                 r = results.get((n, p.text(), sc))
                 cells.append("n/a" if r is None or not r.summary.trials else f"{100 * r.summary.success_rate:.0f}")
         lines.append(f"| {lb} | " + " | ".join(cells) + " |")
+    k = suite_trials(args)
+    on_suite = [(lb, p) for lb, p in perts if lb == "nominal" or lb in PRESETS]
+    files = [c.path.name for c in suite[1]] if suite is not None and k > 0 else []
+    if files:
+        lines += ["", f"### Conflict suite `{suite[0]}`, test split, under the presets", "",
+                  f"The conflict suite's test split (the suite section's {len(files)} files, its families mixed), "
+                  f"{k} seeded trial{'s' if k != 1 else ''} per file (trial i: seed {args.seed or 0} + i, the suite "
+                  "section's first ones) under each preset, beside the ideal world: success % pooled over the files, "
+                  "95 % Wilson interval.", "",
+                  "| perturbation | " + " | ".join(label(n) for n in names) + " |",
+                  "|---|" + "---:|" * len(names)]
+        for lb, p in on_suite:
+            desc = lb if lb == "nominal" else f"{lb} ({p.text()})"
+            lines.append(f"| {desc} | " + " | ".join(_pct(_suite_pooled(results, n, p.text(), files))
+                                                      for n in names) + " |")
     lines += ["", f"### Where each controller breaks (pooled success more than {BREAK_POINTS:g} points below its own "
               "in the ideal world)", ""]
     for n in names:
@@ -189,9 +286,16 @@ def section(results: dict, args, img: Path, doc: Path, label) -> list[str]:
                         if (r := _rate(_pooled(results, n, PerturbConfig.model_validate({field: v}).text())))
                         is not None and r < base - BREAK_POINTS), None)
             first.append(f"{sweep}: {'not within the sweep' if hit is None else f'{field}={hit:g}'}")
+        on_files = ""
+        if files:
+            sbase = _rate(_suite_pooled(results, n, PerturbConfig().text(), files))
+            sbroken = [lb for lb, p in on_suite[1:] if sbase is not None and
+                       (r := _rate(_suite_pooled(results, n, p.text(), files))) is not None and r < sbase - BREAK_POINTS]
+            on_files = (f"; suite test split (ideal world {'not run' if sbase is None else f'{sbase:.0f} %'}): "
+                        + (f"breaks under {', '.join(sbroken)}" if sbroken else "breaks under none"))
         lines.append(f"- {label(n)} (ideal world {base:.0f} %): "
                      + (f"breaks under {', '.join(broken)}" if broken else "breaks under none")
-                     + f"; first sweep point that breaks it: {'; '.join(first)}.")
+                     + f"; first sweep point that breaks it: {'; '.join(first)}{on_files}.")
     curves = {}
     for sweep, (field, ideal, points, xlabel, scale) in SWEEPS.items():
         xs = [ideal, *points]
@@ -202,5 +306,7 @@ def section(results: dict, args, img: Path, doc: Path, label) -> list[str]:
                                  "per point, 95 % CI)")
     lines += ["", f"![degradation]({fig.relative_to(doc.parent)})", "",
               "Reproduce one cell: `racecav eval --scenario conflict-right-to-left --controller drl-avoid "
-              f"--trials {trials} --perturb s2-nominal`.", ""]
+              f"--trials {trials} --perturb s2-nominal`"
+              + (f"; the suite part: `racecav eval --suite {suite[0]} --controller drl-avoid --trials-per-scenario {k} "
+                 "--perturb s2-nominal`" if files else "") + ".", ""]
     return lines

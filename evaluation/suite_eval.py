@@ -96,8 +96,8 @@ def run_suite(args, cfg) -> int:
     """``racecav eval --suite S --controller C``."""
     from tqdm import tqdm
 
-    from racecav.evaluation.trials import Interrupted, NoBar
-    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing
+    from racecav.evaluation.trials import Interrupted, NoBar, eval_perturb
+    from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing, perturbed
     from racecav.evaluation.plots import plot_success_bars
 
     k = args.trials_per_scenario
@@ -114,6 +114,12 @@ def run_suite(args, cfg) -> int:
     if why:
         print(f"racecav eval: cannot evaluate {ctrl.name}: {why}", file=sys.stderr)
         return 2
+    try:  # --perturb: the controller's results are named CONTROLLER@PERTURBATION, as for one scenario
+        perturb = eval_perturb(args, cfg)
+    except ValueError as e:
+        print(f"racecav eval: {e}", file=sys.stderr)
+        return 2
+    ctrl = perturbed(ctrl, perturb)
     seed = args.seed if args.seed is not None else 0
     out = args.out_dir / f"suite-{name}-{args.split}" / ctrl.name
     json_path = args.json or out.with_suffix(".json")
@@ -126,11 +132,11 @@ def run_suite(args, cfg) -> int:
             from racecav.evaluation import ray_cells
 
             bar.close()  # ray_cells has its own
-            results, why = ray_cells.run_suite(args, cells, out)
+            results, why = ray_cells.run_suite(args, cells, out, perturb)
             error = RuntimeError(why) if why else None
         else:
             with Harness(cfg, ctrl, args.mode, str(cells[0].path.resolve()), out / "logs", args.real_time_factor,
-                         compute_charge=getattr(args, "compute_charge", "fixed")) as h:
+                         compute_charge=getattr(args, "compute_charge", "fixed"), perturb=perturb) as h:
                 results, error = run_cells(h, cells, k, seed, out, args.resume, bar)
     except HarnessError as e:
         error = e

@@ -99,6 +99,9 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         if args.robust_trials < 1:
             print("racecav eval --table: --robust-trials must be >= 1", file=sys.stderr)
             return 2
+        if robust.suite_trials(args) < 0:
+            print("racecav eval --table: --robust-suite-trials must be >= 0 (0: no suite part)", file=sys.stderr)
+            return 2
         bad = [n for n in robust.controllers(args) if n not in CONTROLLERS]
         if bad:
             print(f"racecav eval --table: unknown --robust-controllers {bad}; known: {sorted(CONTROLLERS)}",
@@ -116,24 +119,15 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
               file=sys.stderr)
         return 2
     suites: dict[str, tuple[str, list]] = {}  # section -> (suite name, test cells)
-    for sec in (x for x in SUITE_SECTIONS if x in sections):
-        from racecav.common.scenario import SUITES_RUNS_DIR
-        from racecav.evaluation import suite as S
-        from racecav.evaluation.suite_eval import suite_cells
-
-        spec, n, n_train, seed = SUITE_SECTIONS[sec]
-        try:
-            if sec == "suite" and args.suite is not None:
-                spec = args.suite
-            elif not (SUITES_RUNS_DIR / spec / "suite.json").is_file():
-                print(f"racecav eval --table: generating the {spec} suite first "
-                      f"(racecav suite generate --name {spec} --n {n} --n-train {n_train} --seed {seed})")
-                S.generate(S.load_families(spec), SUITES_RUNS_DIR / spec, n, n_train, seed,
-                           progress=not args.no_progress)
-            suites[sec] = suite_cells(spec, "test")
-        except ValueError as e:
-            print(f"racecav eval --table: {e}", file=sys.stderr)
-            return 2
+    robust_suite = None  # the robust section's suite part: the suite section's (suite name, test cells)
+    try:
+        for sec in (x for x in SUITE_SECTIONS if x in sections):
+            suites[sec] = suite_split(sec, args)
+        if "robust" in sections and robust.suite_trials(args) > 0:
+            robust_suite = suites.get("suite") or suite_split("suite", args)
+    except ValueError as e:
+        print(f"racecav eval --table: {e}", file=sys.stderr)
+        return 2
     safety = getattr(args, "safety", "off")
     runs = [(n, on) for n in names for on in {"off": (False,), "on": (True,), "both": (False, True)}[safety]]
     roads: dict[str, tuple[str, list]] = {}  # split -> (suite name, cells): the generalization section
@@ -166,6 +160,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         store = CellStore(_store_dir(args))
         cells = {(n, on): _row_cells(n, on, scen, seeds, trials, suites, k_suite, args, out, store,
                                      roads if (n, on) in roads_rows else {}) for n, on in runs}
+        robust_rows = robust.plan(args, store, out, robust_suite) if "robust" in sections and not from_store else []
     except ValueError as e:  # a broken store file
         print(f"racecav eval --table: {e}", file=sys.stderr)
         return 2
@@ -177,7 +172,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
                   f"of {row}'s cells (e.g. {', '.join(cs[:3])}; absent, or stored with another trial count, "
                   "scenario file or weights): measure them with --resume instead of --from-store", file=sys.stderr)
         if "robust" in sections:
-            _, _, lack = robust.run(args, cfg, store, out, from_store=True)
+            _, _, lack = robust.run(args, cfg, store, out, from_store=True, suite=robust_suite)
             if lack:
                 print(f"racecav eval --table --from-store: {_store_dir(args)} holds no current robust cell for "
                       f"{len(lack)} cells (e.g. {', '.join(lack[:3])}; absent, or stored with another trial count, "
@@ -193,16 +188,21 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     error = None
     per_run = {r: sum(c.trials for c in cs) for r, cs in cells.items()}
     total = sum(per_run.values())
-    jobs = min(getattr(args, "jobs", 1), len(runs))
+    robust_todo = [r for r in robust_rows if r.todo]  # the robust section's rows with a cell to measure
+    # the one dispatch point: --ray, --jobs N or this process (the robust rows: robust.run, below)
+    jobs = min(getattr(args, "jobs", 1), len(runs) + len({r.name for r in robust_todo}))
     ray = getattr(args, "ray", None) is not None and not from_store
     if jobs > 1 or ray:  # the cells are computed elsewhere; the pass below reads them and writes the doc
         if ray:  # Ray tasks, one per cell (evaluation/ray_cells.py)
             from racecav.evaluation import ray_cells
 
+            every = [c for cs in cells.values() for c in cs]
             rc = ray_cells.run_table(args, runs, cells, seeds, {**suites, **{f"roads/{k}": v for k, v in roads.items()}},
-                                     store, total, _done([c for cs in cells.values() for c in cs]) if args.resume else 0)
+                                     store, total + sum(c.trials for r in robust_rows for c in r.cells),
+                                     (_done(every) + _done([c for r in robust_rows for c in r.cells])) if args.resume
+                                     else 0, robust_todo)
         else:  # child tables, one per row
-            rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total, roads_rows)
+            rc = _run_jobs(args, runs, jobs, trials, sections, cells, per_run, out, total, roads_rows, robust_todo)
         if rc != 0:
             return rc
         args.resume = True
@@ -265,7 +265,7 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         bar.close()
     robust_results: dict = {}
     if "robust" in sections and error is None:
-        robust_results, error, _ = robust.run(args, cfg, store, out, from_store)
+        robust_results, error, _ = robust.run(args, cfg, store, out, from_store, suite=robust_suite)
         for c in robust_results.values():
             if c.complete:
                 commits[c.git_commit] = commits.get(c.git_commit, 0) + 1
@@ -300,7 +300,8 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
     doc = write_results_doc(results, keys_, trials, seeds, args, wall, error, sections=sections,
                             suite=docs.get("suite"), free=docs.get("free"), provenance=provenance,
                             roads=(roads, roads_docs) if roads_docs else None,
-                            robust_results=robust_results if "robust" in sections else None)
+                            robust_results=robust_results if "robust" in sections else None,
+                            robust_suite=robust_suite)
     for name in keys_:
         cells = [results.get((name, sc)) for sc in SCENARIOS]
         print(f"{_label(name):34s} " + "  ".join(
@@ -310,6 +311,25 @@ def run_table(args: argparse.Namespace, cfg: Config) -> int:
         print(f"PARTIAL table: {error}; continue with the same command and --resume", file=sys.stderr)
         return 130 if isinstance(error, KeyboardInterrupt) or type(error).__name__ == "Interrupted" else 1
     return 0
+
+
+def suite_split(sec: str, args) -> tuple[str, list]:
+    """(suite name, test cells) of a suite section (SUITE_SECTIONS; ``--suite`` replaces the conflict
+    suite), generated first as docs/world.md documents it when it is missing.
+
+    :raises ValueError: no such suite or split."""
+    from racecav.common.scenario import SUITES_RUNS_DIR
+    from racecav.evaluation import suite as S
+    from racecav.evaluation.suite_eval import suite_cells
+
+    spec, n, n_train, seed = SUITE_SECTIONS[sec]
+    if sec == "suite" and args.suite is not None:
+        spec = args.suite
+    elif not (SUITES_RUNS_DIR / spec / "suite.json").is_file():
+        print(f"racecav eval --table: generating the {spec} suite first "
+              f"(racecav suite generate --name {spec} --n {n} --n-train {n_train} --seed {seed})")
+        S.generate(S.load_families(spec), SUITES_RUNS_DIR / spec, n, n_train, seed, progress=not args.no_progress)
+    return suite_cells(spec, "test")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -413,10 +433,11 @@ def _lines(path: Path) -> int:
 
 
 def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sections: list[str], cells: dict,
-              per_run: dict, out: Path, total: int, roads_rows: set = frozenset()) -> int:
+              per_run: dict, out: Path, total: int, roads_rows: set = frozenset(), robust_rows: list = ()) -> int:
     """``--jobs N``: a pool of N child ``racecav eval --table`` processes (each with its own router,
-    sim and controller: about one core each), one per (controller, safety) row, the rows with the
-    most trials left first, so that the pool ends on short ones and no core idles for long. They
+    sim and controller: about one core each), one per (controller, safety) row and one per
+    controller of the robust section with cells left (``robust_rows``: robust.Row), the rows with
+    the most trials left first, so that the pool ends on short ones and no core idles for long. They
     write the same cells one process would (and the same store). Returns 0 once every child
     finished its cells; otherwise the first failing child's code (its output: OUT/table/logs/job-K.log)."""
     import os
@@ -426,7 +447,6 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
     from racecav.common import procs
 
     base = ["eval", "--table", "--trials", str(trials), "--trials-per-scenario", str(args.trials_per_scenario),
-            "--sections", ",".join(s for s in sections if s not in OPTIONAL_SECTIONS),  # robust: in the parent
             "--mode", args.mode, "--real-time-factor", str(args.real_time_factor),
             "--out-dir", str(args.out_dir), "--no-progress",
             "--compute-charge", getattr(args, "compute_charge", "fixed")]
@@ -437,28 +457,36 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
     if args.resume:
         base.append("--resume")
     (out / "logs").mkdir(parents=True, exist_ok=True)
-    rows = []  # (trials left, controller, safety on, row key)
+    rows = []  # (trials left, row key, the child's own flags)
+    table_sections = ",".join(s for s in sections if s not in OPTIONAL_SECTIONS)
     for name, on in runs:
         key = name + ("+safety" if on else "")
         done = _done(cells[(name, on)]) if args.resume else 0  # else every cell starts over
         if per_run[(name, on)] - done > 0:
-            rows.append((per_run[(name, on)] - done, name, on, key))
+            rows.append((per_run[(name, on)] - done, key,
+                         ["--sections", table_sections, "--safety", "on" if on else "off", "--controllers", name,
+                          "--roads-controllers", name if (name, on) in roads_rows else "none"]))
+    for name in dict.fromkeys(r.name for r in robust_rows):  # the robust section: a child per controller
+        todo = [c for r in robust_rows if r.name == name for c in r.todo]
+        rows.append((sum(c.trials for c in todo) - (_done(todo) if args.resume else 0), f"{name} (robust)",
+                     ["--sections", "robust", "--safety", "off", "--controllers", name, "--robust-controllers", name,
+                      "--robust-trials", str(args.robust_trials),
+                      "--robust-suite-trials", str(getattr(args, "robust_suite_trials", 0))]))
     rows.sort(key=lambda r: -r[0])  # stable: equal rows keep the --controllers order
     pending = list(enumerate(rows))
     running: dict[int, object] = {}
     failed: list[tuple[int, str, int]] = []
-    every = [c for row in cells.values() for c in row]
+    every = [c for row in cells.values() for c in row] + [c for r in robust_rows for c in r.cells]
+    total += sum(c.trials for r in robust_rows for c in r.cells)
     bar = None if args.no_progress else tqdm(total=total, initial=_done(every), unit="trial",
                                              desc=f"table ({jobs} jobs)", dynamic_ncols=True)
     try:
         while pending or running:
             while pending and len(running) < jobs:
-                k, (left, name, on, key) = pending.pop(0)
+                k, (left, key, own) = pending.pop(0)
                 log_path = out / "logs" / f"job-{k}.log"
-                running[k] = procs.start(base + ["--safety", "on" if on else "off", "--controllers", name,
-                                                 "--doc", str(out / "logs" / f"job-{k}.md"),
-                                                 "--store", str(_store_dir(args)),
-                                                 "--roads-controllers", name if (name, on) in roads_rows else "none"],
+                running[k] = procs.start(base + own + ["--doc", str(out / "logs" / f"job-{k}.md"),
+                                                       "--store", str(_store_dir(args))],
                                          dict(os.environ), log_path)
                 print(f"racecav eval --table --jobs {jobs}: job {k}: {key}, {left} trials (log {log_path})",
                       flush=True)
@@ -467,7 +495,7 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
                 if c.poll() is not None:
                     del running[k]
                     if c.returncode != 0:
-                        failed.append((k, rows[k][3], c.returncode))
+                        failed.append((k, rows[k][1], c.returncode))
             if bar is not None:
                 bar.n = _done(every)
                 bar.refresh()
@@ -488,7 +516,7 @@ def _run_jobs(args, runs: list[tuple[str, bool]], jobs: int, trials: int, sectio
 def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict, args, wall_s: float,
                       error, sections=SECTIONS, suite: dict | None = None, free: dict | None = None,
                       provenance: str = "", roads: tuple[dict, dict] | None = None,
-                      robust_results: dict | None = None) -> Path:
+                      robust_results: dict | None = None, robust_suite: tuple[str, list] | None = None) -> Path:
     """docs/results.md: the table beside the paper's, latencies, the bar chart and Figure 4;
     ``provenance``: store.drift_text of the reused cells, in the header."""
     from racecav.common.bench import machine
@@ -521,6 +549,8 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
 
         if args.robust_trials != 30:
             cmd += f" --robust-trials {args.robust_trials}"
+        if robust.suite_trials(args) != 1:
+            cmd += f" --robust-suite-trials {robust.suite_trials(args)}"
         if robust.controllers(args) != robust.controllers(None):
             cmd += f" --robust-controllers {','.join(robust.controllers(args))}"
     stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -629,7 +659,7 @@ def write_results_doc(results: dict, names: list[str], trials: int, seeds: dict,
 
         lines += roads_section(*roads, img, doc, label=_label)
     if robust_results is not None:
-        lines += robust.section(robust_results, args, img, doc, _label)
+        lines += robust.section(robust_results, args, img, doc, _label, robust_suite)
     lines += ["## Reproduce", "", f"```sh\n{cmd}            # --jobs N: N processes; --resume: continue an interrupted run\n"
               "racecav eval --scenario head-to-head --controller drl-reversed --trials 20 --plot h2h.png\n```", "",
               f"Per-trial records (JSONL) and results (JSON, schema docs/results-schema.json) of every cell: "

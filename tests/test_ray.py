@@ -89,6 +89,46 @@ def test_a_table_on_ray_gives_the_local_pools_outcomes(tmp_path, ray_address):
     assert _stored(tmp_path / "ray" / "store") == ray_cells
 
 
+def test_a_perturbed_robust_cell_on_ray_is_the_local_one(tmp_path, ray_address):
+    """A cell of the robust section (conflict right-to-left on the worn car: steering offset, motor
+    gain, mass) run as a Ray task through the table's dispatch (ray_cells.run_table) and in this
+    process (robust.run_rows): the same store row, cell name, run key and trials; and the
+    perturbation acted (the nominal trials differ)."""
+    import argparse
+
+    from racecav.common.config import PerturbConfig, load_config, load_presets
+    from racecav.evaluation import ray_cells, robust
+    from racecav.evaluation.store import CellStore
+
+    worn = PerturbConfig.model_validate(load_presets()["worn-car"]).text()
+    args = argparse.Namespace(robust_trials=2, robust_suite_trials=0, robust_controllers="scripted", seed=None,
+                              mode="lockstep", resume=False, no_progress=True, real_time_factor=1.0, ray=ray_address,
+                              ray_cpus=2.0, ray_retries=0, trials=None, trials_per_scenario=5, compute_charge="fixed",
+                              config=None)
+    got = {}
+    for name, perturb in (("ray", worn), ("local", worn), ("nominal", "nominal")):
+        args.out_dir = tmp_path / name
+        store = CellStore(tmp_path / name / "store")
+        row = next(r for r in robust.plan(args, store, args.out_dir) if r.perturb.text() == perturb)
+        row.cells = row.cells[:1]
+        if name == "ray":
+            assert ray_cells.run_table(args, [], {}, {}, {}, store, 2, 0, [row]) == 0
+        else:
+            _, error = robust.run_rows(args, load_config(), store, args.out_dir, [row])
+            assert error is None
+        got[name] = _stored(tmp_path / name / "store")
+        with gzip.open(tmp_path / name / "store" / "scripted.robust.json.gz", "rt") as f:
+            (cell,) = json.load(f).values()
+        got[name + " controller"] = cell["controller"]["name"]
+    assert list(got["ray"]) == list(got["local"]) == [("scripted", "robust", f"conflict-right-to-left@{worn}")]
+    assert got["ray controller"] == got["local controller"] == f"scripted@{worn}"
+    (a,), (b,) = got["ray"].values(), got["local"].values()
+    assert [t[:3] for t in a] == [t[:3] for t in b] and len(a) == 2
+    assert np.allclose([t[3] for t in a], [t[3] for t in b], atol=1e-3)
+    (nominal,) = got["nominal"].values()
+    assert not np.allclose([t[3] for t in a], [t[3] for t in nominal], atol=1e-3)  # the worn car is slower
+
+
 def _cell_procs() -> dict[int, str]:
     """pid -> RACECAV_CELL tag of every tagged process on this machine."""
     out = {}
