@@ -68,8 +68,12 @@ def test_unknown_keys_and_presets_are_named(tmp_path):
     assert set(P.load_presets()) >= {"s2-nominal", "s2-pessimistic", "worn-car", "slippery-floor", "late-computer"}
     assert PerturbConfig.model_validate("s2-nominal,latency_s=0.05").text() == \
         "dropout=0.02,latency_s=0.05,range_noise_m=0.015"
+    from racecav.evaluation import suite as S
+
+    S.generate(S.load_families("open"), tmp_path / "open", n_test=1, n_train=1, seed=1, progress=False)
     for argv in (["sim", "--perturb", "late-computer,bogus=1"],
-                 ["eval", "--scenario", "head-to-head", "--controller", "scripted", "--perturb", "s2-nominl"]):
+                 ["eval", "--scenario", "head-to-head", "--controller", "scripted", "--perturb", "s2-nominl"],
+                 ["eval", "--suite", str(tmp_path / "open"), "--controller", "scripted", "--perturb", "s2-nominl"]):
         r = subprocess.run([sys.executable, "-m", "racecav.cli", *argv], capture_output=True, text=True, timeout=60)
         out = (r.stdout + r.stderr).strip().splitlines()
         assert r.returncode == 2 and len(out) == 1 and ("'bogus'" in out[0] or "'s2-nominl'" in out[0]), out
