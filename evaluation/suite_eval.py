@@ -122,7 +122,7 @@ def run_suite(args, cfg) -> int:
     ctrl = perturbed(ctrl, perturb)
     seed = args.seed if args.seed is not None else 0
     out = args.out_dir / f"suite-{name}-{args.split}" / ctrl.name
-    json_path = args.json or out.with_suffix(".json")
+    json_path = args.json or out.parent / f"{out.name}.json"  # a perturbed name holds dots (=0.0175)
     bar = NoBar() if args.no_progress else tqdm(total=len(cells) * k, unit="trial", dynamic_ncols=True,
                                                  desc=f"{ctrl.name} {name}/{args.split}", mininterval=1.0)
     wall0 = time.monotonic()
