@@ -92,8 +92,8 @@ def test_a_table_on_ray_gives_the_local_pools_outcomes(tmp_path, ray_address):
 def test_a_perturbed_robust_cell_on_ray_is_the_local_one(tmp_path, ray_address):
     """A cell of the robust section (conflict right-to-left on the worn car: steering offset, motor
     gain, mass) run as a Ray task through the table's dispatch (ray_cells.run_table) and in this
-    process (robust.run_rows): the same store row, cell name, run key and trials; and the
-    perturbation acted (the nominal trials differ)."""
+    process (robust.run_rows): the same store row, cell name, run key and trials (a task that
+    dropped the perturbation ends its trials elsewhere: the worn car is slower)."""
     import argparse
 
     from racecav.common.config import PerturbConfig, load_config, load_presets
@@ -106,10 +106,10 @@ def test_a_perturbed_robust_cell_on_ray_is_the_local_one(tmp_path, ray_address):
                               ray_cpus=2.0, ray_retries=0, trials=None, trials_per_scenario=5, compute_charge="fixed",
                               config=None)
     got = {}
-    for name, perturb in (("ray", worn), ("local", worn), ("nominal", "nominal")):
+    for name in ("ray", "local"):
         args.out_dir = tmp_path / name
         store = CellStore(tmp_path / name / "store")
-        row = next(r for r in robust.plan(args, store, args.out_dir) if r.perturb.text() == perturb)
+        row = next(r for r in robust.plan(args, store, args.out_dir) if r.perturb.text() == worn)
         row.cells = row.cells[:1]
         if name == "ray":
             assert ray_cells.run_table(args, [], {}, {}, {}, store, 2, 0, [row]) == 0
@@ -125,8 +125,6 @@ def test_a_perturbed_robust_cell_on_ray_is_the_local_one(tmp_path, ray_address):
     (a,), (b,) = got["ray"].values(), got["local"].values()
     assert [t[:3] for t in a] == [t[:3] for t in b] and len(a) == 2
     assert np.allclose([t[3] for t in a], [t[3] for t in b], atol=1e-3)
-    (nominal,) = got["nominal"].values()
-    assert not np.allclose([t[3] for t in a], [t[3] for t in nominal], atol=1e-3)  # the worn car is slower
 
 
 def _cell_procs() -> dict[int, str]:
