@@ -136,9 +136,9 @@ def plan(args, store, out: Path, suite: tuple[str, list] | None = None) -> list[
                           out / "robust" / f"{stem}-{sc}.jsonl") for sc in registry.CONFLICT_SCENARIOS]
             if suite is not None and k > 0 and p.text() in on_suite:
                 suite_name, files = suite
+                folder = out / "robust" / f"suite-{suite_name}" / stem
                 cells += [cell(f"robust-suite-{suite_name}", c.path.name, str(c.path.resolve()), c.path.resolve(),
-                               args.seed or 0, k, out / "robust" / f"suite-{suite_name}" / stem / f"{c.path.stem}.jsonl")
-                          for c in files]
+                               args.seed or 0, k, folder / f"{c.path.stem}.jsonl") for c in files]
             rows.append(Row(name, p, cells))
     return rows
 
@@ -289,8 +289,9 @@ def section(results: dict, args, img: Path, doc: Path, label, suite: tuple[str, 
         on_files = ""
         if files:
             sbase = _rate(_suite_pooled(results, n, PerturbConfig().text(), files))
-            sbroken = [lb for lb, p in on_suite[1:] if sbase is not None and
-                       (r := _rate(_suite_pooled(results, n, p.text(), files))) is not None and r < sbase - BREAK_POINTS]
+            sbroken = [lb for lb, p in on_suite[1:] if sbase is not None
+                       and (r := _rate(_suite_pooled(results, n, p.text(), files))) is not None
+                       and r < sbase - BREAK_POINTS]
             on_files = (f"; suite test split (ideal world {'not run' if sbase is None else f'{sbase:.0f} %'}): "
                         + (f"breaks under {', '.join(sbroken)}" if sbroken else "breaks under none"))
         lines.append(f"- {label(n)} (ideal world {base:.0f} %): "
