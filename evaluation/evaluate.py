@@ -129,6 +129,11 @@ def run(args: argparse.Namespace, cfg: Config) -> int:
     if args.ray is not None and not (args.table or (args.suite and args.controller)):
         print("racecav eval: --ray is for --table and --suite (a single scenario runs here)", file=sys.stderr)
         return 2
+    if args.ray is not None and getattr(args, "model", None) is not None:
+        # a Ray worker builds its controller from the registry by name: it would run the shipped weights
+        print("racecav eval: --model runs locally, not with --ray (a Ray worker builds its controller by name, "
+              "with the shipped weights)", file=sys.stderr)
+        return 2
     if args.ray is not None and (args.ray_cpus <= 0 or args.ray_retries < 0):
         print("racecav eval: --ray-cpus must be > 0 and --ray-retries >= 0", file=sys.stderr)
         return 2

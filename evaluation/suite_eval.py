@@ -84,6 +84,8 @@ def suite_json(name: str, split: str, controller: str, k: int, seed: int, cells:
             "wall_s": round(wall_s, 1),
             "compute_charge_ms": sorted({r.controller.compute_charge_ms for r in results.values()},
                                         key=lambda v: (v is None, v or 0.0)),
+            # the policy file each trial ran (--model or the shipped weights; none for the references)
+            "weights_sha256": sorted({r.controller.weights_sha256 or "" for r in results.values()}),
             "summary": overall.model_dump(mode="json"),
             "families": {f: s.model_dump(mode="json") for f, s in fams.items()},
             "scenarios": [{"file": c.path.name, "family": c.family,
@@ -96,7 +98,7 @@ def run_suite(args, cfg) -> int:
     """``racecav eval --suite S --controller C``."""
     from tqdm import tqdm
 
-    from racecav.evaluation.trials import Interrupted, NoBar, eval_perturb
+    from racecav.evaluation.trials import Interrupted, NoBar, eval_perturb, with_model
     from racecav.evaluation.harness import CONTROLLERS, Harness, HarnessError, missing, perturbed
     from racecav.evaluation.plots import plot_success_bars
 
@@ -109,7 +111,11 @@ def run_suite(args, cfg) -> int:
     except ValueError as e:
         print(f"racecav eval: {e}", file=sys.stderr)
         return 2
-    ctrl = CONTROLLERS[args.controller]
+    try:  # --model: another policy file in the drl-* controller (a checkpoint before shipping)
+        ctrl = with_model(CONTROLLERS[args.controller], getattr(args, "model", None))
+    except ValueError as e:
+        print(f"racecav eval: {e}", file=sys.stderr)
+        return 2
     why = missing(ctrl)
     if why:
         print(f"racecav eval: cannot evaluate {ctrl.name}: {why}", file=sys.stderr)

@@ -214,6 +214,20 @@ def eval_perturb(args: argparse.Namespace, cfg: Config):
     return p
 
 
+def with_model(ctrl, model: Path | None):
+    """``ctrl`` running the policy file ``model`` (``--model``) instead of its shipped weights
+    (``ctrl`` itself when ``model`` is None).
+
+    :raises ValueError: ``ctrl`` is not a drl-* controller.
+    """
+    if model is None:
+        return ctrl
+    if ctrl.service != "policy":
+        raise ValueError(f"--model applies to the drl-* controllers, not {ctrl.name}")
+    model = Path(model).resolve()
+    return dataclasses.replace(ctrl, args=("policy", "--model", str(model)), model=model)
+
+
 def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -> int:
     """One scenario x one controller (``racecav eval --scenario S --controller C``).
 
@@ -237,12 +251,11 @@ def run_single(args: argparse.Namespace, cfg: Config, per_trial: bool = False) -
     except ValueError as e:
         print(f"racecav eval: {e}", file=sys.stderr)
         return 2
-    if getattr(args, "model", None) is not None:
-        if ctrl.service != "policy":
-            print(f"racecav eval: --model applies to the drl-* controllers, not {ctrl.name}", file=sys.stderr)
-            return 2
-        model = args.model.resolve()
-        ctrl = dataclasses.replace(ctrl, args=("policy", "--model", str(model)), model=model)
+    try:
+        ctrl = with_model(ctrl, getattr(args, "model", None))
+    except ValueError as e:
+        print(f"racecav eval: {e}", file=sys.stderr)
+        return 2
     why = missing(ctrl)
     if why:
         print(f"racecav eval: cannot evaluate {ctrl.name}: {why}", file=sys.stderr)

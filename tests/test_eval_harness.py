@@ -158,6 +158,18 @@ def test_policy_service_with_other_weights(tmp_path):
     assert res.controller_counters["answered"] >= t.steps - 1 and res.controller_counters["malformed"] == 0
     r = _eval(tmp_path, "--scenario", "head-to-head", "--controller", "mpc-apf", "--model", str(model), "--trials", "1")
     assert r.returncode == 2 and "--model applies to the drl-* controllers" in r.stderr
+    # a suite runs the same file (--suite once ran the shipped weights whatever --model said)
+    from racecav.evaluation import suite as S
+
+    S.generate(S.load_families("open"), tmp_path / "open", n_test=1, n_train=1, seed=1, progress=False)
+    out = tmp_path / "suite.json"
+    r = _eval(tmp_path, "--suite", str(tmp_path / "open"), "--controller", "drl-default", "--model", str(model),
+              "--trials-per-scenario", "1", "--json", str(out))
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert json.loads(out.read_text())["weights_sha256"] == [hashlib.sha256(model.read_bytes()).hexdigest()]
+    r = _eval(tmp_path, "--suite", str(tmp_path / "open"), "--controller", "drl-default", "--model", str(model),
+              "--ray")
+    assert r.returncode == 2 and "--model runs locally" in r.stderr
 
 
 @pytest.mark.parametrize("name", ["drl-avoid", "drl-reversed", "drl-default", "drl-racing", "mpc-apf"])
