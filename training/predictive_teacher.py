@@ -475,7 +475,10 @@ class PredictiveTeacher:
         towards = (lat_a * np.sin(rel) < 0) | (np.abs(lat_a) < width[:, None] / 2)
         ahead = (along_a > e_s[:, None] - 0.5) & (along_a < e_s[:, None] + WAIT_RANGE_M)
         crawl = (v >= STILL_V) & (v < CRAWL_V) & (v < 0.8 * a.v0)  # slowed below its own speed
-        return (a.used & crossing & towards & ahead & crawl).any(1)
+        # a car no longer timed by the ego (released: at the conflict point, or on a scripted speed)
+        # keeps the speed it has: the prediction covers it, and waiting on it froze the ego for
+        # seconds while it crawled through (the conflict suite's crossings: 55-80 % frozen)
+        return (a.used & crossing & towards & ahead & crawl & ~a.released).any(1)
 
     def _steer_first(self, who: np.ndarray, ryaw: np.ndarray, v_meet: np.ndarray) -> tuple[np.ndarray, ...]:
         """(steer first, standing, waiting) (N,): the car the full-throttle plan meets first is one
