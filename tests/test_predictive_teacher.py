@@ -53,3 +53,23 @@ def test_does_not_wait_for_a_car_that_stops_short(suite):
     # through sooner than a car that drives on at 1 m/s: it never stopped to wait
     assert (r["done_at"] < ref["done_at"]).all(), (r["done_at"], ref["done_at"])
     assert np.isfinite(r["done_at"]).all()
+
+
+def test_reacts_only_to_cars_its_lidar_has_seen(suite, monkeypatch):
+    """The teacher predicts only the actors the ego's scan returned from (within SEEN_MEMORY_S):
+    its labels never answer a car the policy cannot see. Blinded, it drives into the stationary
+    car it passes when it sees it."""
+    from racecav.common.vehicle import load_car
+    from racecav.sim.fast_world import FastWorld
+    from racecav.training import predictive_teacher as PT
+
+    scs = scenarios(suite, "test", "rear-stationary")
+    fw = FastWorld(n_envs=2, scenarios=scs[:1], car=load_car(), seed=SELECTION_SEED)
+    fw.reset()
+    teacher = PT.PredictiveTeacher(fw)
+    teacher.labels()
+    pose = np.stack([fw.x[:, 0], fw.y[:, 0], fw.yaw[:, 0]], 1)
+    assert (teacher.w.actors.used == fw.seen_by_agent(np.arange(2), pose=pose)).all()
+    assert teacher.w.actors.used.any(1).all()  # the car ahead is in view from the start
+    monkeypatch.setattr(PT.Batch, "seen", lambda self: np.zeros(self.actors.used.shape, bool))
+    assert drive(scs, TRIALS, SELECTION_SEED, "teacher")["collided"].all()

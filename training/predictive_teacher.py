@@ -56,6 +56,8 @@ CURB_M = 0.1        # m the ego's side keeps from the curb in a shift
 CRAWL_V = 0.9       # m/s: a car ahead going the ego's way slower than this is passed, not followed
 STILL_V = 0.05      # m/s: a car slower than this stands
 WAIT_RANGE_M = 8.0  # m ahead along the ego's road in which a crawling crossing car is waited for
+SEEN_MEMORY_S = 0.5  # s an actor counts as seen after the ego's lidar last returned from it (the
+                     # policy's memory: its stacked scans span 0.4 s)
 STOP_MIN_S = 1.2    # s a stop lasts at least: a driver who stops, stands (and a car that waits
                     # for the ego goes once it has stood a while)
 ALONG_SIN = 0.5     # |sin| of a car's heading off the ego's road below which it drives along it
@@ -217,6 +219,20 @@ class Batch:
             setattr(out, k, arr)
         self.actors = out
 
+    def seen(self) -> np.ndarray:
+        """(N, A) the actors that return at least one ray of the ego's scan now (line of sight past
+        walls and cars, in the view and range of the policy's lidar; FastWorld.seen_by_agent, from
+        the current pose: the world's last scan may be older)."""
+        out = np.zeros(self.actors.used.shape, bool)
+        i = 0
+        for w in self.worlds:
+            envs = np.arange(w.n_envs)
+            pose = np.stack([w.x[:, 0], w.y[:, 0], w.yaw[:, 0]], 1)
+            s = w.seen_by_agent(envs, pose=pose)
+            out[i:i + w.n_envs, :s.shape[1]] = s
+            i += w.n_envs
+        return out
+
     def ego_road(self, n: int) -> Road:
         w, i = self.owner[n]
         sc = w.scenarios[int(w.scenario_index[i])]
@@ -277,6 +293,9 @@ class PredictiveTeacher:
         """(N,) the manoeuvre each env's last label follows (an index into ``names``)."""
         self.stop_at = np.full(self.w.n_envs, np.inf)
         """(N,) the time each env's current stop began (inf: not stopped)."""
+        self.seen_at = np.full((self.w.n_envs, self.w.actors.n_actors), -np.inf)
+        """(N, A) when the ego's lidar last returned from each actor (-inf: not in this episode)."""
+        self.last_time = np.zeros(self.w.n_envs)
         self.names: list[str] = []
 
     def road(self, n: int) -> Road:
@@ -355,6 +374,7 @@ class PredictiveTeacher:
         """(N, 2) a_T, a_delta for every world's current state."""
         w, car = self.w, self.car
         w.refresh()
+        w.actors.used = w.actors.used & self._seen()
         N = w.n_envs
         roads = [self.road(n) for n in range(N)]
         rx, ry, ryaw = (np.array([getattr(r, k) for r in roads]) for k in ("x", "y", "yaw"))
@@ -446,6 +466,21 @@ class PredictiveTeacher:
         delta = np.arctan(2.0 * car.wheelbase * np.sin(alpha) / ld)
         steer = np.clip(delta, car.delta_min, car.delta_max) / car.steer_gain
         return np.stack([thr, steer], 1).astype(np.float32)
+
+    def _seen(self) -> np.ndarray:
+        """(N, A) the actors the teacher reacts to: seen by the ego's lidar within SEEN_MEMORY_S.
+        The policy it teaches sees only its scans: a label for a car behind a wall, beyond the
+        range or outside the view is one the policy cannot tell from a free road (it learned to
+        stand at empty junctions)."""
+        w = self.w
+        A = w.actors.n_actors
+        if self.seen_at.shape[1] != A:  # the batch's widest map changed (maps redrawn)
+            self.seen_at = np.full((w.n_envs, A), -np.inf)
+        self.seen_at[w.time < self.last_time - 1e-9] = -np.inf  # a new episode
+        self.last_time = w.time.copy()
+        now = w.seen()
+        self.seen_at[now] = np.broadcast_to(w.time[:, None], now.shape)[now]
+        return w.time[:, None] - self.seen_at <= SEEN_MEMORY_S + 1e-9
 
     @staticmethod
     def _latest(t_hit: np.ndarray, worst: np.ndarray) -> np.ndarray:
