@@ -3,9 +3,11 @@
 Every control step it reads the fast world's privileged state (training only; the policy it
 teaches sees only its scans):
 
-- every scenario actor's pose, speed, path and scripted speed changes (sim/actors.py), predicted
-  HORIZON_S ahead along its path at its current speed, the speed changes applied. An actor that
-  has not started stays where it is: no driver can know when a parked car will pull out;
+- the pose, speed, path and scripted speed changes (sim/actors.py) of every scenario actor that the
+  ego's lidar has returned from in the last SEEN_MEMORY_S (a label for a car the policy cannot see
+  is one it cannot learn), predicted HORIZON_S ahead along its path at its current speed, the
+  speed changes applied. An actor that has not started stays where it is: no driver can know
+  when a parked car will pull out;
 - the ego's road (the straight road or way of the scenario's world that the ego starts on, its
   width; :func:`ego_road`), predicted under each manoeuvre of a small set: on at full throttle,
   at 1.6 / 0.9 / 0.4 m/s, stop, in its lane; or a shift to either side (SHIFTS_M, wider where the
