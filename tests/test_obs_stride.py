@@ -62,7 +62,8 @@ def _random_policy(stride: int, seed: int = 0) -> NumpyPolicy:
 
 def test_policy_service_stacks_with_the_policy_s_stride():
     """The service's act path (fused kernel) on consecutive scans equals the numpy policy on the
-    training stack; a lost scan (a seq gap) restarts the stack."""
+    training stack; a lost scan (a seq gap) and a stamp that goes back with the next seq (a sim
+    that swapped its world) restart the stack."""
     from racecav.common.lidar import sanitize
     from racecav.services.policy.service import PolicyService
 
@@ -72,13 +73,14 @@ def test_policy_service_stacks_with_the_policy_s_stride():
                         policy=pol)
     rng = np.random.default_rng(1)
     ref = ScanStack(2, 3)
-    seq = 0
-    for k in range(12):
+    seq, back = 0, 0
+    for k in range(16):
         seq += 2 if k == 7 else 1  # one scan lost before the 8th
+        back += 3_000_000_000 if k == 12 else 0  # the 13th is stamped 2.6 s before the 12th
         ranges = rng.uniform(0.3, 10.0, WIDE_SCAN.n_rays).astype(np.float32)
-        scan = make_scan(ranges, seq * 100_000_000, seq, "sim", WIDE_SCAN)
+        scan = make_scan(ranges, seq * 100_000_000 + 10_000_000_000 - back, seq, "sim", WIDE_SCAN)
         assert svc.check(scan, time.monotonic_ns())
-        if k == 7:
+        if k in (7, 12):
             ref.reset()
         want = pol(ref(sanitize(svc.view(scan), svc.spec)))
         np.testing.assert_allclose(svc.act(scan), want, atol=1e-5)

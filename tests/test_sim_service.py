@@ -149,10 +149,14 @@ def test_broken_scenario_file_exits_2_naming_the_field(tmp_path):
     assert out.returncode == 2 and "ego.speed" in out.stdout + out.stderr
 
 
-def test_policy_stack_restarts_at_a_sim_reset(spawn, session):
+@pytest.mark.parametrize("request_kind", ["reset", "scenario"])
+def test_policy_stack_restarts_at_a_sim_reset(spawn, session, request_kind):
     """A stacked policy (the shipped avoid: 2 scans) answers the first scan of a new episode
     from a fresh stack, as in training (the first scan repeated), never from the last scan of
-    the previous world: the sim leaves a gap in the stamps at a reset (EPISODE_GAP_S)."""
+    the previous world: the sim leaves a gap in the stamps at a reset (EPISODE_GAP_S), also when
+    a scenario request swaps its world (once it stamped the new world's first scan before the
+    old world's last: the stack carried over and an eval's first trial depended on how long the
+    services had run before it)."""
     import numpy as np
 
     from racecav.common.lidar import sanitize
@@ -186,7 +190,8 @@ def test_policy_stack_restarts_at_a_sim_reset(spawn, session):
         raise TimeoutError(f"no command for scan {seq} or later")
 
     answered(9)
-    query_message(session, "car0", "sim", "reset", {"seed": 2})  # replies once the sim loop has reset
+    payload = {"seed": 2} if request_kind == "reset" else {"name": "conflict-left-to-right", "seed": 2}
+    query_message(session, "car0", "sim", request_kind, payload)  # replies once the sim loop has reset
     time.sleep(0.2)  # the scan in flight arrives
     with lock:  # lockstep: the sim's next scan waits for this one's command, so every scan up
         last = max(s.seq for s in got["scan"])  # to a later answered one was answered too

@@ -84,7 +84,8 @@ class PolicyService(ControllerService):
         seq, stamp = self._last
         if seq is not None and scan.seq == seq and self.stack.buf is not None:
             return self.fused(self.stack.current())  # the same scan again (lockstep republish)
-        if seq is None or scan.seq != seq + 1 or scan.stamp_ns - stamp > 1.5 * scan.scan_time * 1e9:
+        # a stamp that jumps, or goes back (a sim restarted, a replayed log), is another episode
+        if seq is None or scan.seq != seq + 1 or not 0 < scan.stamp_ns - stamp <= 1.5 * scan.scan_time * 1e9:
             self.stack.reset()
         self._last = (scan.seq, scan.stamp_ns)
         return self.fused(self.stack(ranges))

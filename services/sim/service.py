@@ -180,9 +180,14 @@ class SimService(Service):
         return BulletWorld(scenario, car=self.car_params, lidar_all=self.scfg.lidar_all, lidar=spec,
                            heading=self.scfg.heading if scenario.traffic else None, perturb=self.scfg.perturb)
 
-    def _new_episode(self, seed: int, heading: str | None = None) -> None:
+    def _new_episode(self, seed: int, heading: str | None = None, world=None) -> None:
+        """Start an episode (in ``world`` if given: a scenario request swaps the world here, after
+        the stamps advanced past the old one's time, so they never go back)."""
         if self.episode >= 0:
             self.offset_ns += int(round((self.world.t + EPISODE_GAP_S) * 1e9))
+        if world is not None:
+            self.world.close()
+            self.world = world
         opts = {"heading": heading} if heading and self.world.scenario.traffic else {}
         self.world.reset(seed=seed, options=opts)
         self._timing_rng = trial_rng(seed, stream=1)  # perturbed timing: a function of the seed only
@@ -259,12 +264,11 @@ class SimService(Service):
             except queue.Empty:
                 return changed
             try:
+                new = None
                 if kind == "scenario":
                     new = self._make_world(load_scenario(data["name"]))
-                    self.world.close()
-                    self.world = new
                     self.scenario_ref = data["name"]
-                self._new_episode(data.get("seed", self.next_seed), data.get("heading"))
+                self._new_episode(data.get("seed", self.next_seed), data.get("heading"), world=new)
                 self._publish()
                 # seq and stamp of the episode's first sample (a recorder cuts its files there)
                 box["reply"] = {"episode": self.episode, "seed": self.seed,
