@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -56,8 +57,10 @@ def test_dagger_run_resumes_and_the_selection_loads_its_checkpoints(tmp_path, ca
     assert main(base + flags + ["--steps", "128"]) == 0  # in-process: the torch import is paid once
     assert json.loads((run / "latest.json").read_text())["timesteps"] == 128
     assert main(base + ["--resume", "--steps", "192"]) == 0
-    rows = (run / "progress.csv").read_text().splitlines()
-    assert [int(x.split(",")[0]) for x in rows[1:]] == [64, 128, 192]
+    rows = list(csv.DictReader((run / "progress.csv").open()))
+    assert [int(r["timesteps"]) for r in rows] == [64, 128, 192]
+    # the resumed run goes on with the aggregate it had gathered (it restarted empty: 64)
+    assert [int(r["dataset"]) for r in rows] == [64, 128, 192]
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["stage"] == "dagger" and cfg["expert"] == "yield"
     pol = policy_from_checkpoint(run / "checkpoints" / "step_000000192.zip", obs_stack=2, lidar="wide")

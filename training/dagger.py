@@ -30,6 +30,7 @@ relabelled by the teacher (with --bc-balance: its steers round a car).
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import time
 from pathlib import Path
@@ -122,6 +123,43 @@ def yield_teacher(tc, fast):
                         teacher_brakes=source_env(Path(tc.init_from), "brake_below", None) is not None)
 
 
+DATASET = "dagger-state.pt"
+"""Beside latest.*: the aggregate (oldest first), the optimiser and the rng of the last checkpoint.
+Without it a resumed stage started from an empty aggregate and fitted the policy to its first few
+rollouts alone, so a stage run in chunks was not the stage run at once (the refine stage resumed
+at 3 M of 4 M: free-road success 0.89 at 3 M, 0.68 at 4 M)."""
+
+
+def save_state(run_dir: Path, samples: int, obs, act, man, size: int, head: int, opt, rng) -> None:
+    """Write the DAgger state of ``samples`` (renamed into place: never half a file)."""
+    import torch
+
+    order = np.r_[head:size, 0:head] if size == len(obs) else np.arange(size)  # oldest first
+    tmp = run_dir / (DATASET + ".tmp")
+    torch.save({"timesteps": int(samples), "obs": torch.from_numpy(obs[order]), "act": torch.from_numpy(act[order]),
+                "man": torch.from_numpy(man[order]), "opt": opt.state_dict(), "rng": rng.bit_generator.state}, tmp)
+    os.replace(tmp, run_dir / DATASET)
+
+
+def load_state(run_dir: Path, samples: int, dim: int) -> dict | None:
+    """The saved DAgger state if it is the checkpoint's being resumed (same sample count and
+    observation size); otherwise None, logged (e.g. a stage resumed from its committed record)."""
+    import torch
+
+    path = run_dir / DATASET
+    if samples == 0:
+        return None
+    if not path.is_file():
+        log.warning("%s: no %s: the aggregate starts empty", run_dir, DATASET)
+        return None
+    st = torch.load(path, weights_only=False)
+    if st["timesteps"] != samples or st["obs"].shape[1] != dim:
+        log.warning("%s: %s is of %d samples, not the checkpoint's %d: the aggregate starts empty",
+                    run_dir, DATASET, st["timesteps"], samples)
+        return None
+    return st
+
+
 class _Stop:
     requested = False
 
@@ -157,6 +195,15 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
     data_man = np.zeros(cap, bool)  # relabelled by the teacher (with bc_balance: a steer round a car)
     size = head = 0
     samples, wall0, t0 = int(state["timesteps"]), float(state["wall_s"]), time.monotonic()
+    saved = load_state(run_dir, samples, dim)
+    if saved is not None:  # the newest ``cap`` of the saved aggregate, oldest first
+        size = min(len(saved["obs"]), cap)
+        data_obs[:size], data_act[:size], data_man[:size] = (saved[k][-size:].numpy() for k in ("obs", "act", "man"))
+        head = size % cap
+        opt.load_state_dict(saved["opt"])
+        rng.bit_generator.state = saved["rng"]
+        log.info("%s: resumed the aggregate (%d samples)", run_dir, size)
+        del saved
     next_ckpt = (samples // tc.checkpoint_every + 1) * tc.checkpoint_every
     stop = _Stop()
     old = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
@@ -165,6 +212,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
 
     def save(final: bool) -> None:
         model.num_timesteps = samples
+        save_state(run_dir, samples, data_obs, data_act, data_man, size, head, opt, rng)
         save_checkpoint(run_dir, model, venv, wall0 + time.monotonic() - t0, final)
 
     truncate_csv(run_dir / "progress.csv", samples, FIELDS)
