@@ -76,7 +76,7 @@ def test_policy_service_stacks_with_the_policy_s_stride():
     seq, back = 0, 0
     for k in range(16):
         seq += 2 if k == 7 else 1  # one scan lost before the 8th
-        back += 3_000_000_000 if k == 12 else 0  # the 13th is stamped 2.6 s before the 12th
+        back += 3_000_000_000 if k == 12 else 0  # the 13th is stamped 2.9 s before the 12th
         ranges = rng.uniform(0.3, 10.0, WIDE_SCAN.n_rays).astype(np.float32)
         scan = make_scan(ranges, seq * 100_000_000 + 10_000_000_000 - back, seq, "sim", WIDE_SCAN)
         assert svc.check(scan, time.monotonic_ns())
