@@ -212,7 +212,7 @@ class Harness:
     :param real_time_factor: realtime mode: sim seconds per wall second.
     :param record_dir: if set, a ``racecav record`` process writes one MCAP file per trial there
         (``<scenario>-<index>-seed<seed>.mcap``, cut at each episode's first stamp; what came
-        before the first trial, if anything: setup.mcap).
+        before the first trial, the services coming up and the sim's start scenario: setup.mcap).
     :param safety: also run ``racecav safety`` (the emergency-brake supervisor; in lockstep the
         sim waits for its verdict on every scan, so its brakes are deterministic too).
     :param compute_charge: lockstep: "fixed" (default) charges every command the controller's
@@ -268,14 +268,16 @@ class Harness:
                 "RACECAV_SIM__PERTURB": json.dumps(self.perturb.active())})
             if self.charge_ms is not None:
                 env["RACECAV_SIM__LOCKSTEP_COMPUTE_MS"] = repr(float(self.charge_ms))
+            if self.record_dir is not None:  # a separate process: the control path never waits for it
+                # first: the start-up (and the sim's start scenario, run while the controller comes
+                # up) always lands in setup.mcap, never in a trial's file, whatever the machine's load
+                self.record_dir.mkdir(parents=True, exist_ok=True)
+                self._start("record", ["record", "-o", str(self.record_dir / "setup.mcap")], env)
             if self.safety:  # before the sim: a lockstep sim waits for its verdicts
                 env["RACECAV_SIM__LOCKSTEP_SAFETY"] = "true"
                 self._start("safety", ["safety"], env)
             self._start("sim", ["sim", "--scenario", str(self.first_scenario), "--mode", self.mode], env)
             self._start(self.ctrl.service, list(self.ctrl.args), env)
-            if self.record_dir is not None:  # a separate process: the control path never waits for it
-                self.record_dir.mkdir(parents=True, exist_ok=True)
-                self._start("record", ["record", "-o", str(self.record_dir / "setup.mcap")], env)
         except BaseException:
             self._stack.close()
             raise

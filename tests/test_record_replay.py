@@ -205,7 +205,8 @@ def test_eval_record_cuts_each_lockstep_trial_exactly(tmp_path):
     boundary by stamp. Read with an MCAP reader: every channel decodes (no encoding Foxglove
     flags), /tf_static and /tf are there, log times span the trial's sim duration, and the
     scans, states, obstacle states and commands of each trial are exactly its own: all of
-    them, and none of another trial. No empty setup.mcap."""
+    them, and none of another trial nor of setup.mcap (the start-up, recorded first, so it is
+    there however far the sim's start scenario ran before the first trial)."""
     import json
 
     from mcap.reader import make_reader
@@ -221,8 +222,16 @@ def test_eval_record_cuts_each_lockstep_trial_exactly(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     trials = [json.loads(line)["trial"] for line in (out / "head-to-head-drl-reversed.jsonl").read_text().splitlines()]
     names = [f"head-to-head-{t['index']:03d}-seed{t['seed']}.mcap" for t in trials]
-    assert len(trials) == 3 and sorted(p.name for p in rec_dir.iterdir()) == sorted(names)  # no setup.mcap
+    assert len(trials) == 3 and sorted(p.name for p in rec_dir.iterdir()) == sorted(names + ["setup.mcap"])
+    # the sim's first scan (its start scenario) is in setup.mcap, and no sample of it in a trial's file
     seen: dict[str, set] = {"state": set(), "scan": set(), "obstacles": set(), "cmd": set()}
+    for smp in read_raw(rec_dir / "setup.mcap"):
+        leaf = smp.key.rsplit("/", 1)[-1]
+        cls = {"state": VehicleState, "scan": Scan, "obstacles": ObstacleStates, "cmd": DriveCommand}.get(leaf)
+        if cls is not None:
+            msg = decode(smp.payload, cls)
+            seen[leaf].add(msg.scan_seq if leaf == "cmd" else msg.seq)
+    assert 0 in seen["scan"], "the start scenario's first scan is not in setup.mcap"
     for t, name in zip(trials, names):
         path = rec_dir / name
         with open(path, "rb") as f:
