@@ -293,7 +293,12 @@ class Suite:
     manifest: dict
 
     def files(self, split: str) -> list[tuple[Path, str]]:
-        """(scenario file, family) of a split."""
+        """(scenario file, family) of a split.
+
+        :raises ValueError: the split was not generated (names the command that writes it)."""
+        if split not in self.manifest["splits"]:
+            raise ValueError(f"suite {self.root}: no {split} split (have {', '.join(self.manifest['splits'])}; "
+                             f"write it with `racecav suite generate --name {self.manifest['name']} --splits {split}`)")
         return [(self.root / e["file"], e["family"]) for e in self.manifest["splits"][split]]
 
     @property

@@ -390,17 +390,29 @@ def _counts(ff: FamilyFile, n: int) -> dict[str, int]:
 
 
 def generate(ff: FamilyFile, out: Path, n_test: int, n_train: int, seed: int = 0,
-             progress: bool = True) -> dict:
-    """Draw, validate and write both splits; returns the manifest (also suite.json)."""
+             progress: bool = True, splits=SPLITS) -> dict:
+    """Draw, validate and write the splits (default both); returns the manifest (also suite.json).
+    A split's files depend only on the seed and their own index, so a split written alone is the
+    one both would give; the splits not written are kept from an existing manifest of the same
+    suite and seed."""
     from tqdm import tqdm
 
     import tomli_w
 
     out.mkdir(parents=True, exist_ok=True)
+    man_path = out / "suite.json"
+    old = json.loads(man_path.read_text()) if man_path.is_file() else {}
     manifest = {"name": ff.name, "families": [f.name for f in ff.families], "seed": seed,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "splits": {}, "redrawn": {}}
+    if old.get("name") == ff.name and old.get("seed") == seed:
+        for split in SPLITS:
+            if split not in splits and split in old.get("splits", {}):
+                manifest["splits"][split] = old["splits"][split]
+                manifest["redrawn"][split] = old.get("redrawn", {}).get(split, {})
     for si, split in enumerate(SPLITS):
+        if split not in splits:
+            continue
         (out / split).mkdir(exist_ok=True)
         for old in (out / split).glob("*.toml"):
             old.unlink()
@@ -442,5 +454,6 @@ def generate(ff: FamilyFile, out: Path, n_test: int, n_train: int, seed: int = 0
             manifest["redrawn"].setdefault(split, {})[fam.name] = redrawn
         bar.close()
         manifest["splits"][split] = sorted(entries, key=lambda e: e["file"])
-    (out / "suite.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    manifest["splits"] = {k: manifest["splits"][k] for k in SPLITS if k in manifest["splits"]}
+    man_path.write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from racecav.common.scenario import SUITES_RUNS_DIR as RUNS_DIR, open_suite
 from racecav.evaluation import benchmark
-from racecav.evaluation.suite import SUITES_DIR, generate, load_families
+from racecav.evaluation.suite import SPLITS, SUITES_DIR, generate, load_families
 
 def _is_benchmark(name_or_path: str) -> bool:
     """A suite file for the roads generator (``generator = "roads"``), not a family file."""
@@ -34,8 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--n", type=int, help="test files in all, spread over the families by weight (default 140); "
                    "a roads suite: files per family in test, ood and controls (default: the suite file's n_test)")
     g.add_argument("--n-train", type=int, help="train files in all (default 1400); a roads suite: per family")
-    g.add_argument("--splits", help="a roads suite: the splits to (re)write, comma-separated "
-                   "(default all: train,test,ood,controls); the others are kept")
+    g.add_argument("--splits", help="the splits to (re)write, comma-separated (default all: train,test; a roads "
+                   "suite: train,test,ood,controls); the others are kept")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", type=Path, help="output folder (default runs/suites/NAME)")
     g.add_argument("--no-progress", action="store_true")
@@ -50,21 +50,21 @@ def run(args, cfg) -> int:
                 print("racecav suite: --n and --n-train must be >= 1")
                 return 2
             out = args.out or RUNS_DIR / args.name
-            if _is_benchmark(args.families or args.name):
+            roads = _is_benchmark(args.families or args.name)
+            known = benchmark.SPLITS if roads else SPLITS
+            splits = tuple(s.strip() for s in (args.splits or ",".join(known)).split(",") if s.strip())
+            bad = [s for s in splits if s not in known]
+            if bad or not splits:
+                print(f"racecav suite: --splits: unknown split(s) {bad} (choose from {', '.join(known)})")
+                return 2
+            if roads:
                 bf = benchmark.load_benchmark(args.families or args.name)
-                splits = tuple(s.strip() for s in (args.splits or ",".join(benchmark.SPLITS)).split(",") if s.strip())
-                bad = [s for s in splits if s not in benchmark.SPLITS]
-                if bad or not splits:
-                    print(f"racecav suite: --splits: unknown split(s) {bad} (choose from {', '.join(benchmark.SPLITS)})")
-                    return 2
                 man = benchmark.generate(bf, out, args.seed, splits, progress=not args.no_progress,
                                          n_test=args.n, n_train=args.n_train)
             else:
-                if args.splits:
-                    print("racecav suite: --splits: only for a roads suite (generator = \"roads\")")
-                    return 2
                 ff = load_families(args.families or args.name)
-                man = generate(ff, out, args.n or 140, args.n_train or 1400, args.seed, progress=not args.no_progress)
+                man = generate(ff, out, args.n or 140, args.n_train or 1400, args.seed, progress=not args.no_progress,
+                               splits=splits)
         else:
             s = open_suite(args.suite)
             man, out = s.manifest, s.root

@@ -326,9 +326,11 @@ def suite_split(sec: str, args) -> tuple[str, list]:
     if sec == "suite" and args.suite is not None:
         spec = args.suite
     elif not (SUITES_RUNS_DIR / spec / "suite.json").is_file():
-        print(f"racecav eval --table: generating the {spec} suite first "
-              f"(racecav suite generate --name {spec} --n {n} --n-train {n_train} --seed {seed})")
-        S.generate(S.load_families(spec), SUITES_RUNS_DIR / spec, n, n_train, seed, progress=not args.no_progress)
+        # the test split alone: its files are the ones a full generation writes (training adds train)
+        print(f"racecav eval --table: generating the {spec} suite's test split first "
+              f"(racecav suite generate --name {spec} --n {n} --n-train {n_train} --seed {seed} --splits test)")
+        S.generate(S.load_families(spec), SUITES_RUNS_DIR / spec, n, n_train, seed, progress=not args.no_progress,
+                   splits=("test",))
     return suite_cells(spec, "test")
 
 

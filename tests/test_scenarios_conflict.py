@@ -163,6 +163,24 @@ def test_generated_suite_covers_every_family_with_disjoint_splits(small_suite):
     assert json.loads((out / "suite.json").read_text()) == man
 
 
+def test_a_split_written_alone_is_the_one_both_write(small_suite, tmp_path):
+    """`--splits test` (what `racecav eval --table` writes when the suite is missing) writes the
+    same test files as a full generation; the train split, absent, is an error naming the command
+    that writes it, and writing it later keeps the test split."""
+    from racecav.common.scenario import open_suite
+
+    full, man = small_suite
+    ff = S.load_families("conflicts")
+    alone = S.generate(ff, tmp_path, n_test=7, n_train=7, seed=3, progress=False, splits=("test",))
+    assert list(alone["splits"]) == ["test"] and alone["splits"]["test"] == man["splits"]["test"]
+    for e in man["splits"]["test"]:
+        assert (tmp_path / e["file"]).read_text() == (full / e["file"]).read_text()
+    with pytest.raises(ValueError, match="no train split .*--splits train"):
+        open_suite(str(tmp_path)).files("train")
+    both = S.generate(ff, tmp_path, n_test=7, n_train=7, seed=3, progress=False, splits=("train",))
+    assert both["splits"] == man["splits"]
+
+
 def test_generated_files_make_a_straight_car_collide(small_suite):
     from racecav.common.scenario import scenario_files
 
