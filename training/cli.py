@@ -98,6 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from racecav.training import recipe
 
     recipe.add_subcommands(sub)
+    from racecav.training import robust_select
+
+    robust_select.add_subcommands(sub)
     p = sub.add_parser("export", help="write a policy as ONNX: DIR/model.onnx + model.json (ray layout, "
                        "normalisation, action meaning); run it with racecav policy --backend onnxruntime")
     p.add_argument("--onnx", required=True, metavar="NAME", help="racing | default | reversed | PATH to a policy .npz")
@@ -121,6 +124,10 @@ def run(args, cfg) -> int:
         from racecav.training import sweep
 
         return sweep.run(args, cfg)
+    if args.train_cmd == "robust-select":
+        from racecav.training import robust_select
+
+        return robust_select.run(args, cfg)
     from racecav.training import select
 
     return select.run(args, cfg)
