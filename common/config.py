@@ -606,7 +606,7 @@ class TrainConfig(Section):
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)
-    """Labelled samples kept (the newest; the aggregate is not checkpointed)."""
+    """Labelled samples kept (the newest; saved with each checkpoint as dagger-state.pt and resumed)."""
 
 
 TRAIN_PRESETS: dict[str, dict] = {

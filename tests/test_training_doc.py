@@ -22,7 +22,7 @@ def test_ablation_csv_holds_every_row_and_the_shipped_one():
 
     with ABLATION_CSV.open() as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["row"]) for r in rows] == list(range(1, 96))
+    assert len(rows) >= 95 and [int(r["row"]) for r in rows] == list(range(1, len(rows) + 1))
     runs = {r["run"]: r for r in rows}
     assert all(r["base"] in runs or r["base"] == "" for r in rows)  # every row names the row it builds on
     shipped = json.loads((MODELS_DIR / "avoid.json").read_text())
