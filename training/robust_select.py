@@ -1,7 +1,8 @@
 """``racecav train robust-select``: candidate policies on the selection seeds under perturbations.
 
-Whether training under randomised perturbations (EnvConfig.perturb) pays is decided here, on the
-selection split and never on the table's test seeds: each candidate (a policy .npz, e.g. a
+Whether a candidate holds up under perturbations is decided here, on the selection split and
+never on the table's test seeds (ablation rows 96-97: training under randomised perturbations,
+measured with it and removed): each candidate (a policy .npz, e.g. a
 checkpoint shipped to a scratch name) runs the conflict-timed scenarios through the services
 (`racecav eval`, lockstep, so the latency perturbations are charged where the car has them) under
 the ideal world and each perturbation, and the paper-timed ones in the ideal world (what it must
