@@ -26,6 +26,8 @@ CONFLICT = ("conflict-right-to-left", "conflict-head-to-head", "conflict-left-to
 PAPER = ("right-to-left", "head-to-head", "left-to-right")
 PERTURBATIONS = "s2-nominal,s2-pessimistic,worn-car,slippery-floor,late-computer,latency_s=0.1"
 FIELDS = ["model", "perturbation", "scenario", "successes", "trials"]
+REFERENCES = {"no evasion, 1 m/s": "scripted", "no evasion, full throttle": "full-throttle"}
+"""The two non-evading references (registry controllers), run on the same seeds and cells."""
 
 
 def add_subcommands(sub) -> None:
@@ -39,6 +41,8 @@ def add_subcommands(sub) -> None:
     p.add_argument("--jobs", type=int, default=2, help="evaluations at once (one core each)")
     p.add_argument("--out", type=Path, required=True, help="CSV of the cells (resumable: cells in it are kept)")
     p.add_argument("--md", type=Path, help="also write the table as markdown here")
+    p.add_argument("--no-references", action="store_true", help="without the two non-evading references "
+                   "(straight at 1 m/s and at full throttle), which otherwise run the same cells")
     p.set_defaults(stage="robust-select")
 
 
@@ -47,14 +51,15 @@ def _perturbations(spec: str) -> list[str]:
     return ["nominal"] + [s.strip() for s in spec.split(sep) if s.strip()]
 
 
-def _cell(model: str, path: str, perturbation: str, scenario: str, trials: int) -> dict:
-    """One `racecav eval` of a model on a scenario under a perturbation (selection seeds)."""
+def _cell(model: str, path: str | None, perturbation: str, scenario: str, trials: int) -> dict:
+    """One `racecav eval` of a model (a policy file, or None: the reference ``model``) on a scenario
+    under a perturbation (selection seeds)."""
     from racecav.common.procs import racecav_cmd
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run.json"
-        cmd = ["eval", "--scenario", scenario, "--controller", "drl-avoid", "--model", path,
-               "--trials", str(trials), "--seed", str(SELECT_SEED), "--mode", "lockstep",
+        ctrl = ["--controller", "drl-avoid", "--model", path] if path else ["--controller", REFERENCES[model]]
+        cmd = ["eval", "--scenario", scenario, *ctrl, "--trials", str(trials), "--seed", str(SELECT_SEED), "--mode", "lockstep",
                "--out-dir", tmp, "--json", str(out), "--no-progress"]
         if perturbation != "nominal":
             cmd += ["--perturb", perturbation]
@@ -85,6 +90,8 @@ def run(args, cfg) -> int:
         msg = e.errors()[0]["msg"] if hasattr(e, "errors") else str(e)
         print(f"racecav train robust-select: {msg}")
         return 2
+    if not args.no_references:
+        models.update({name: None for name in REFERENCES})
     todo = [(m, p, s) for m in models for p in perts for s in CONFLICT]
     todo += [(m, "nominal", s) for m in models for s in PAPER]
     rows = []
