@@ -401,15 +401,15 @@ def generate(ff: FamilyFile, out: Path, n_test: int, n_train: int, seed: int = 0
 
     out.mkdir(parents=True, exist_ok=True)
     man_path = out / "suite.json"
-    old = json.loads(man_path.read_text()) if man_path.is_file() else {}
+    prev = json.loads(man_path.read_text()) if man_path.is_file() else {}
     manifest = {"name": ff.name, "families": [f.name for f in ff.families], "seed": seed,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "splits": {}, "redrawn": {}}
-    if old.get("name") == ff.name and old.get("seed") == seed:
+    if prev.get("name") == ff.name and prev.get("seed") == seed:
         for split in SPLITS:
-            if split not in splits and split in old.get("splits", {}):
-                manifest["splits"][split] = old["splits"][split]
-                manifest["redrawn"][split] = old.get("redrawn", {}).get(split, {})
+            if split not in splits and split in prev.get("splits", {}):
+                manifest["splits"][split] = prev["splits"][split]
+                manifest["redrawn"][split] = prev.get("redrawn", {}).get(split, {})
     for si, split in enumerate(SPLITS):
         if split not in splits:
             continue
