@@ -21,7 +21,8 @@ from racecav.common import registry
 from racecav.evaluation.inprocess import REPORT_SEED, SELECT_SEED, eval_scenario
 from racecav.evaluation.plots import plot_paths
 from racecav.training import targets
-from racecav.training.runs import COMMITTED, EXPERIMENTS_COMMIT, REFERENCES_CSV, REPO, load_run_config, run_dir_of
+from racecav.training.runs import (COMMITTED, EXPERIMENTS_COMMIT, REFERENCES_CSV, REMOVED_AT, REPO, load_run_config,
+                                   run_dir_of)
 
 log = logging.getLogger("racecav.train")
 
@@ -369,7 +370,8 @@ def flags_markdown() -> str:
          "Generated from TrainConfig and EnvConfig (common/config.py); `racecav train STAGE --help` prints the "
          "same, with each stage's defaults (the racing stage: no obstacle cars, centerline traffic). A run records "
          "them all in its config.json. The ablation's other settings are gone from training/ (an old "
-         f"config.json that turns one on is refused, naming commit {EXPERIMENTS_COMMIT}, where their code is).", "",
+         f"config.json that turns one on is refused, naming the commit where its code is: {EXPERIMENTS_COMMIT}, "
+         f"and {', '.join(f'{k} {c}' for k, c in REMOVED_AT.items())}).", "",
          "| flag | default (overtake) | --preset fast | what it sets |", "|---|---|---|---|"]
     L += [row(TrainConfig, n, "--" + n.replace("_", "-"), n) for n in TRAIN_FLAGS]
     L += [row(EnvConfig, n, flag, f"env.{n}") for n, flag in ENV_FLAGS.items()]
