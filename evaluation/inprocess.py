@@ -13,6 +13,8 @@ actions (a policy: common/policy.NumpyPolicy; or :class:`ConstantAction`).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from racecav.common import registry
 
 SELECT_SEED = 100_000
@@ -74,7 +76,30 @@ def eval_env(policy, env_cfg, episodes: int, seed: int = HELDOUT_SEED) -> dict:
 
 def eval_suite_fast(policy, env_cfg, episodes: int, seed: int = SELECT_SEED) -> dict:
     """Success of one episode in each of ``episodes`` fast worlds running the run's scenario
-    files (its suite's train split) with selection seeds: overall and per family."""
+    files (its suite's train split) with selection seeds: overall and per family.
+
+    A run that trains on a pool of maps (``env.scenario_maps``) is measured on every source of its
+    ``scenarios`` apart, an equal share of the episodes each, each episode on a map of its own:
+    with the run's K maps the measure saw K maps (8 of a roads suite's 800) and called it the suite.
+    Its families are then named ``source/family`` (two suites may both have a "braking")."""
+    parts = [p.strip() for p in str(env_cfg.scenarios).split(",") if p.strip()]
+    if not env_cfg.scenario_maps:
+        return _suite_fast(policy, env_cfg, episodes, seed)
+    out, ok = {}, 0.0
+    for i, part in enumerate(parts):
+        n = episodes // len(parts) + (1 if i < episodes % len(parts) else 0)
+        if n == 0:
+            continue
+        # K = n: every episode on its own map (MapPool clamps K to the source's maps)
+        r = _suite_fast(policy, env_cfg.model_copy(update={"scenarios": part, "scenario_maps": n}), n, seed)
+        ok += r["suite_success"] * n
+        prefix = f"{Path(part).name}/" if len(parts) > 1 else ""
+        out.update({f"suite_{prefix}{k[6:]}": v for k, v in r.items()
+                    if k.startswith("suite_") and k not in ("suite_success", "suite_episodes")})
+    return {"suite_success": ok / max(1, episodes), "suite_episodes": int(episodes), **out}
+
+
+def _suite_fast(policy, env_cfg, episodes: int, seed: int) -> dict:
     import numpy as np
 
     from racecav.training.vec_env import FastVecEnv

@@ -54,3 +54,23 @@ def test_scenario_maps_zero_builds_every_map(maps):
     assert env.map_pool is None and len(env.worlds) == 7
     with pytest.raises(ValueError, match="scenario_maps"):
         env.resample_maps()
+
+
+def test_selection_measures_every_map_of_a_pooled_run(maps, tmp_path):
+    """select's suite cell of a run trained on K maps at a time runs one episode per map drawn
+    (not the run's K maps), each source of its mix apart, families named by source."""
+    import shutil
+
+    from racecav.evaluation.inprocess import eval_suite_fast, reference_drivers
+
+    drv = reference_drivers()["straight, full throttle"]
+    families = {f.name for f in load_benchmark("roads").families if f.control}
+    cfg = EnvConfig(scenarios=str(maps), scenario_share=1.0, scenario_maps=2, obs_stack=1)
+    r = eval_suite_fast(drv, cfg, 7)
+    assert r["suite_episodes"] == 7
+    assert {k[6:] for k in r if k.startswith("suite_")} - {"success", "episodes"} == families  # all 7 maps
+    other = shutil.copytree(maps, tmp_path / "again")
+    two = eval_suite_fast(drv, cfg.model_copy(update={"scenarios": f"{maps},{other}"}), 14)
+    assert {k[6:] for k in two if k.startswith("suite_")} - {"success", "episodes"} == \
+        {f"{src}/{f}" for src in ("controls", "again") for f in families}
+    assert two["suite_success"] == pytest.approx(r["suite_success"])  # the same maps, the same seeds
