@@ -73,3 +73,19 @@ def test_reacts_only_to_cars_its_lidar_has_seen(suite, monkeypatch):
     assert teacher.w.actors.used.any(1).all()  # the car ahead is in view from the start
     monkeypatch.setattr(PT.Batch, "seen", lambda self: np.zeros(self.actors.used.shape, bool))
     assert drive(scs, TRIALS, SELECTION_SEED, "teacher")["collided"].all()
+
+
+def test_sees_with_the_students_lidar_view():
+    """The probe's world scans with the student's view (VIEW, the shipped avoid's wide scan): a
+    car crossing from the side at a bearing of 50-60 deg, outside the paper's frontal +-45 deg
+    for its whole approach, is one the student sees and the teacher must answer. Scanning with
+    the paper's view, the teacher never saw it and drove into it at full throttle."""
+    from pathlib import Path
+
+    from racecav.training.predictive_teacher import VIEW, student_car
+
+    assert VIEW == "wide"
+    scs = [load_scenario(Path(__file__).parent / "data" / "roads_braking_side_approach.toml")]
+    assert drive(scs, TRIALS, SELECTION_SEED, "teacher", car=student_car("paper"))["collided"].all()
+    r = drive(scs, TRIALS, SELECTION_SEED, "teacher")
+    assert r["success"].all(), r
