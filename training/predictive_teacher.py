@@ -540,15 +540,14 @@ class PredictiveTeacher:
 
 
 # ---------------------------------------------------------------------------------- the probe
-def student_car(view: str = VIEW, car=None):
-    """``car`` (default: the shipped car) scanning with the lidar ``view`` (common/lidar.VIEWS), as
-    the training env builds it (training/env.env_car): the teacher's seen rule then answers the
-    cars the student's scans return from, no fewer."""
-    from racecav.common.lidar import VIEWS, with_rays
-    from racecav.common.vehicle import load_car
+def student_car(view: str = VIEW):
+    """The shipped car scanning with the lidar ``view`` (common/lidar.VIEWS), built by the training
+    env's own function: the teacher's seen rule then answers the cars the student's scans return
+    from, no fewer."""
+    from racecav.common.config import EnvConfig
+    from racecav.training.env import env_car
 
-    car = car or load_car()
-    return car.model_copy(update={"lidar": with_rays(car.lidar, VIEWS[view])})
+    return env_car(EnvConfig(lidar=view))
 
 
 def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dict[str, np.ndarray]:
