@@ -82,9 +82,9 @@ def eval_suite_fast(policy, env_cfg, episodes: int, seed: int = SELECT_SEED) -> 
     ``scenarios`` apart, an equal share of the episodes each, each episode on a map of its own:
     with the run's K maps the measure saw K maps (8 of a roads suite's 800) and called it the suite.
     Its families are then named ``source/family`` (two suites may both have a "braking")."""
-    parts = [p.strip() for p in str(env_cfg.scenarios).split(",") if p.strip()]
     if not env_cfg.scenario_maps:
         return _suite_fast(policy, env_cfg, episodes, seed)
+    parts = [p.strip() for p in str(env_cfg.scenarios).split(",") if p.strip()]
     out, ok = {}, 0.0
     for i, part in enumerate(parts):
         n = episodes // len(parts) + (1 if i < episodes % len(parts) else 0)
@@ -100,6 +100,7 @@ def eval_suite_fast(policy, env_cfg, episodes: int, seed: int = SELECT_SEED) -> 
 
 
 def _suite_fast(policy, env_cfg, episodes: int, seed: int) -> dict:
+    """One episode in each of ``episodes`` fast worlds of ``env_cfg``'s scenarios, as they draw them."""
     import numpy as np
 
     from racecav.training.vec_env import FastVecEnv
