@@ -471,6 +471,11 @@ class EnvConfig(Section):
     False: every train file equally often. Families: each suite's own (its manifest), a
     plain scenario file is its own family (common/scenario.scenario_sources). The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
     gym env draws uniformly."""
+    map_curriculum: bool = False
+    """With curriculum and scenario_maps: draw the maps by the same failure rates as the files, each
+    source of ``scenarios`` weighted by its families' mean weight (training/map_pool.py), so the
+    roads a policy fails on come round more often; False: every source as often as any other. A
+    roads suite has one file per map: without this the curriculum never reaches across its maps."""
     curriculum_boost: dict[str, float] = {}
     """With curriculum: family -> factor on its draw weight (e.g. ``paper-timed/cross-left=3``;
     on the CLI "FAMILY=W[,FAMILY=W]"), for families that look alike until late (a crossing car to
@@ -500,6 +505,9 @@ class EnvConfig(Section):
     def _boost_needs_curriculum(self):
         if self.curriculum_boost and not self.curriculum:
             raise ValueError("curriculum_boost: weighs the curriculum's draw; set curriculum too")
+        if self.map_curriculum and not (self.curriculum and self.scenario_maps):
+            raise ValueError("map_curriculum: weighs the draw of a map pool by the curriculum's failure rates; "
+                             "set curriculum and scenario_maps too")
         return self
 
     lidar: Literal["paper", "wide"] = "paper"

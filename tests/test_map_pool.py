@@ -74,3 +74,42 @@ def test_selection_measures_every_map_of_a_pooled_run(maps, tmp_path):
     assert {k[6:] for k in two if k.startswith("suite_")} - {"success", "episodes"} == \
         {f"{src}/{f}" for src in ("controls", "again") for f in families}
     assert two["suite_success"] == pytest.approx(r["suite_success"])  # the same maps, the same seeds
+
+
+def test_map_curriculum_draws_the_failing_roads_more_often(maps):
+    """With map_curriculum the map draw follows the curriculum's failure rates; the record of a
+    family outlives the draws that leave its maps out."""
+    from collections import Counter, deque
+
+    cfg = EnvConfig(scenarios=str(maps), scenario_share=1.0, scenario_maps=2, obs_stack=1,
+                    curriculum=True, map_curriculum=True)
+    env = FastVecEnv(n_envs=4, config=cfg, seed=1)
+    fams = sorted({f for k in env.map_pool.keys for f in env.map_pool.groups[k][1]})
+    hard = fams[0]
+    for f in fams:  # one family failing every episode, the others passing every one
+        env.family_history[f] = deque([f != hard] * 50, maxlen=200)
+    hard_key = next(k for k in env.map_pool.keys if env.map_pool.groups[k][1] == [hard])
+    drawn = Counter()
+    for _ in range(60):
+        env.resample_maps()
+        drawn.update(keys(env))
+    # weights 1 against 6 x 0.1 (the floor): in ~87 % of the draws of 2 maps; 2/7 when uniform
+    assert drawn[hard_key] >= 45
+    assert min(drawn[k] for k in env.map_pool.keys if k != hard_key) < 30
+    assert len(env.family_history[fams[-1]]) >= 50  # kept while its map was not drawn
+
+    plain = FastVecEnv(n_envs=4, config=cfg.model_copy(update={"map_curriculum": False}), seed=1)
+    for f in fams:
+        plain.family_history[f] = deque([f != hard] * 50, maxlen=200)
+    drawn = Counter()
+    for _ in range(60):
+        plain.resample_maps()
+        drawn.update(keys(plain))
+    assert drawn[hard_key] < 35  # the plain draw ignores the record
+
+
+def test_map_curriculum_needs_a_curriculum_and_a_pool(maps):
+    with pytest.raises(ValueError, match="map_curriculum"):
+        EnvConfig(scenarios=str(maps), scenario_maps=2, map_curriculum=True)
+    with pytest.raises(ValueError, match="map_curriculum"):
+        EnvConfig(scenarios=str(maps), curriculum=True, map_curriculum=True)

@@ -36,24 +36,30 @@ class FamilyCurriculum:
     equally likely. Families are grouped across the batch's scenario
     worlds (a family may span world geometries); each world's draw is renormalised. The
     history is not checkpointed: a resumed run relearns it in its first episodes.
+
+    :param history: family -> its recent outcomes, shared with the curriculum of the next maps
+        (``FastVecEnv.resample_maps``), so a family keeps its record while none of its maps is drawn.
     """
 
     WINDOW = 200  # episodes per family in the failure rate
     FLOOR = 0.1
     MIN_EPISODES = 20  # before this, a family counts as failing half the time
 
-    def __init__(self, worlds: list, boost: dict[str, float] | None = None):
+    def __init__(self, worlds: list, boost: dict[str, float] | None = None,
+                 history: dict[str, deque] | None = None):
         self.worlds = [w for w in worlds if w.actors is not None]
         self.names = sorted({f for w in self.worlds for f in w.scenario_families})
         unknown = sorted(set(boost or {}) - set(self.names))
         if unknown:
             raise ValueError(f"curriculum_boost: no family {', '.join(unknown)} in the scenarios "
                              f"(families: {', '.join(self.names)})")
-        self.boost = np.array([(boost or {}).get(f, 1.0) for f in self.names])
+        self.boost_of = dict(boost or {})
+        self.boost = np.array([self.boost_of.get(f, 1.0) for f in self.names])
         ids = {f: i for i, f in enumerate(self.names)}
         self.fam_of = [np.array([ids[f] for f in w.scenario_families]) for w in self.worlds]
         self._files_of_fam = [np.bincount(fam, minlength=len(self.names))[fam] for fam in self.fam_of]
-        self.history = [deque(maxlen=self.WINDOW) for _ in self.names]
+        self.store = {} if history is None else history
+        self.history = [self.store.setdefault(f, deque(maxlen=self.WINDOW)) for f in self.names]
         self.update()
 
     def record(self, world, envs: np.ndarray, success: np.ndarray) -> None:
@@ -66,6 +72,17 @@ class FamilyCurriculum:
         """Family -> success rate over its window (NaN before MIN_EPISODES episodes)."""
         return {f: (float(np.mean(h)) if len(h) >= self.MIN_EPISODES else float("nan"))
                 for f, h in zip(self.names, self.history)}
+
+    def family_weights(self, names: list[str]) -> np.ndarray:
+        """The draw weight of each family of ``names``, from its record in the shared history (a
+        family not drawn yet, or drawn fewer than MIN_EPISODES times, counts as failing half the
+        time): the map pool's draw with EnvConfig.map_curriculum."""
+        rate = []
+        for f in names:
+            h = self.store.get(f, ())
+            rate.append(float(np.mean(h)) if len(h) >= self.MIN_EPISODES else 0.5)
+        boost = np.array([self.boost_of.get(f, 1.0) for f in names])
+        return np.maximum(1.0 - np.array(rate), self.FLOOR) * boost
 
     def update(self) -> None:
         rate = np.array(list(self.success_rates().values()))
@@ -131,7 +148,9 @@ class FastVecEnv(VecEnv):
         self._actions = np.zeros((n, 2))
         # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
         self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
-        self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost) if self.settings.curriculum and self.is_scenario.any() else None
+        self.family_history: dict[str, deque] = {}  # the curriculum's record, kept across map draws
+        self.curriculum = (FamilyCurriculum(self.worlds, self.settings.curriculum_boost, self.family_history)
+                           if self.settings.curriculum and self.is_scenario.any() else None)
         if seed is not None:
             self.seed(seed)
 
@@ -231,18 +250,15 @@ class FastVecEnv(VecEnv):
             raise ValueError("resample_maps: the env has no map pool (set scenario_maps)")
         rng = self.map_rng if seed is None else np.random.default_rng(seed)
         first = next(i for i, w in enumerate(self.worlds) if w.actors is not None)
-        new = self.map_pool.build(self.map_pool.draw(rng), seed=int(rng.integers(2**31)))
+        weigh = self.curriculum.family_weights if self.settings.map_curriculum and self.curriculum else None
+        new = self.map_pool.build(self.map_pool.draw(rng, weigh), seed=int(rng.integers(2**31)))
         self.worlds[first:] = new
         self.world = self.worlds[0]
         for w, sl in zip(new, self.slices[first:]):
             self._stack[sl] = w.reset()[:, None]
             self.a_prev[sl] = 0.0
         if self.curriculum is not None:
-            old = dict(zip(self.curriculum.names, self.curriculum.history))
-            self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost)
-            for name, h in zip(self.curriculum.names, self.curriculum.history):
-                h.extend(old.get(name, ()))
-            self.curriculum.update()
+            self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost, self.family_history)
 
     def close(self) -> None:
         pass
