@@ -368,8 +368,8 @@ def flags_markdown() -> str:
          "Generated from TrainConfig and EnvConfig (common/config.py); `racecav train STAGE --help` prints the "
          "same, with each stage's defaults (the racing stage: no obstacle cars, centerline traffic). A run records "
          "them all in its config.json. The ablation's other settings are gone from training/ (an old "
-         f"config.json that turns one on is refused, naming the commit where its code is: {EXPERIMENTS_COMMIT}, "
-         f"and {', '.join(f'{k} {c}' for k, c in REMOVED_AT.items())}).", "",
+         f"config.json that turns one on is refused, naming the commit where its code is: {EXPERIMENTS_COMMIT}"
+         + "".join(f", {k} {c}" for k, c in REMOVED_AT.items()) + ").", "",
          "| flag | default (overtake) | --preset fast | what it sets |", "|---|---|---|---|"]
     L += [row(TrainConfig, n, "--" + n.replace("_", "-"), n) for n in TRAIN_FLAGS]
     L += [row(EnvConfig, n, flag, f"env.{n}") for n, flag in ENV_FLAGS.items()]
