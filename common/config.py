@@ -514,6 +514,12 @@ class EnvConfig(Section):
     """The scan the policy sees (common/lidar.VIEWS): paper = 170 rays over the frontal 90 deg;
     wide = 169 rays over +-89.7 deg (every second ray of the paper's spacing). The policy's
     metadata carries it; the sim and the sensor then publish common/lidar.WIDE_SCAN."""
+    stand_input: float = Field(0.0, ge=0, le=10)
+    """Observation also holds the seconds the ego has stood still (speed below
+    common/vehicle.STAND_SPEED; on the car: the VESC's), capped at this many: a policy that sees
+    only its last scans cannot tell a stop it has just begun from one it has held for seconds.
+    0: scans only. The training VecEnv's option (training/vec_env.FastVecEnv) so far: the services
+    do not feed the ego's speed to the policy yet."""
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
     More than one shows motion; the policy service stacks the same way (policy metadata)."""

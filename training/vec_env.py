@@ -23,7 +23,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from racecav.common.config import EnvConfig
-from racecav.common.vehicle import brake_from_action
+from racecav.common.vehicle import brake_from_action, stood_seconds
 from racecav.training.env import env_settings, make_worlds, reward, scenario_envs
 from racecav.training.flow_reward import flow_reward, flow_weights
 
@@ -135,6 +135,9 @@ class FastVecEnv(VecEnv):
         self.n_stack, self.stride = self.settings.obs_stack, self.settings.obs_stride
         n_obs = self.n_stack * spec.n_rays
         low, high = np.full(n_obs, spec.range_min, np.float32), np.full(n_obs, spec.range_max, np.float32)
+        self.stand_cap = float(self.settings.stand_input)
+        if self.stand_cap:  # the stand timer after the scans (EnvConfig.stand_input)
+            low, high = np.append(low, np.float32(0.0)), np.append(high, np.float32(self.stand_cap))
         obs_space = gym.spaces.Box(low, high, dtype=np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
@@ -145,6 +148,7 @@ class FastVecEnv(VecEnv):
         for w, sl in zip(self.worlds, self.slices):
             self.is_scenario[sl] = w.actors is not None
         self.a_prev = np.zeros(n, dtype=np.float64)
+        self.stood = np.zeros(n)  # s each ego has stood (EnvConfig.stand_input)
         self._actions = np.zeros((n, 2))
         # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
         self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
@@ -167,13 +171,18 @@ class FastVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.a_prev[:] = 0.0
+        self.stood[:] = 0.0
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._stack[:] = obs[:, None]
         return self._stacked()
 
     def _stacked(self) -> np.ndarray:
-        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened."""
-        return self.stacked_view(self.n_stack, self.stride)
+        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
+        (then the stand timer, with EnvConfig.stand_input)."""
+        obs = self.stacked_view(self.n_stack, self.stride)
+        if self.stand_cap:
+            obs = np.concatenate([obs, self.stood[:, None].astype(np.float32)], axis=1)
+        return obs
 
     def stacked_view(self, n_stack: int, stride: int) -> np.ndarray:
         """The raw scans as a policy with its own ``n_stack`` and ``stride`` sees them (e.g. a frozen
@@ -200,6 +209,8 @@ class FastVecEnv(VecEnv):
             bb = self.settings.brake_below  # None (the paper's action): no brake mask on the hot path
             o, (t, d), c, _info = w.step(a, brake=None if bb is None else brake_from_action(a[:, 0], bb))
             dprog.append(w.progress() - p0)
+            if self.stand_cap:
+                self.stood[sl] = stood_seconds(self.stood[sl], w.v[:, 0], w.control_period, self.stand_cap)
             if flow is not None:
                 flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
             obs_parts.append(o)
@@ -236,6 +247,7 @@ class FastVecEnv(VecEnv):
                 if idx.size:
                     w.reset_worlds(idx)
                     self._stack[sl][idx] = w.agent_obs()[idx][:, None]  # a new episode: no history
+            self.stood[dones] = 0.0
             obs = self._stacked()
             self.a_prev[dones] = 0.0
             if self.curriculum is not None:
@@ -257,6 +269,7 @@ class FastVecEnv(VecEnv):
         for w, sl in zip(new, self.slices[first:]):
             self._stack[sl] = w.reset()[:, None]
             self.a_prev[sl] = 0.0
+            self.stood[sl] = 0.0
         if self.curriculum is not None:
             self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost, self.family_history)
 
