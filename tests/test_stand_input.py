@@ -84,3 +84,20 @@ def test_the_single_env_refuses_the_timer():
 
     with pytest.raises(ValueError, match="stand_input"):
         OvertakeEnv(config=env_cfg(stand_input=3.0))
+
+
+def test_a_policy_with_the_timer_loads_and_the_services_refuse_it_clearly():
+    from racecav.common.config import Config
+    from racecav.common.policy import NumpyPolicy
+    from racecav.services.policy.service import PolicyService
+
+    rng = np.random.default_rng(0)
+    arrays = {"w0": rng.normal(size=(339, 8)), "b0": np.zeros(8), "w1": rng.normal(size=(8, 8)), "b1": np.zeros(8),
+              "w2": rng.normal(size=(8, 2)), "b2": np.zeros(2)}
+    meta = {"obs_stack": 2, "obs_stride": 4, "lidar": "wide", "brake_below": -0.5}
+    with pytest.raises(ValueError, match="obs_stack 2 does not divide"):
+        NumpyPolicy(arrays, meta)
+    pol = NumpyPolicy(arrays, {**meta, "stand_input": 3.0})
+    assert pol(np.ones(339)).shape == (2,)
+    with pytest.raises(ValueError, match="stand timer"):
+        PolicyService(Config(), policy=pol)
