@@ -539,9 +539,6 @@ class EnvConfig(Section):
     """Brake action: a_T below this brakes (wheel speed target 0; the VESC's brake current on
     the car, DriveCommand.brake). None: the paper's action, where a_T <= 0 only coasts. The
     shipped policy's metadata carries it, so the policy service brakes the same way."""
-    perturb: PerturbConfig | None = None
-    """Fast backend: train under perturbations drawn per world and episode, each between the
-    ideal value and this one (a preset name or key=value pairs; common/perturb.py). None: off."""
 
 
 class TrainConfig(Section):

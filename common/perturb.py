@@ -96,16 +96,3 @@ def command_delay(p: PerturbConfig, rng: np.random.Generator, size=None):
     delay + the scan's jitter (uniform in [0, scan_jitter_s], one draw per scan)."""
     jitter = rng.uniform(0.0, p.scan_jitter_s, size) if p.scan_jitter_s else (0.0 if size is None else np.zeros(size))
     return p.latency_s + p.actuator_delay_s + jitter
-
-
-def draw(p: PerturbConfig, rng: np.random.Generator) -> PerturbConfig:
-    """One randomised perturbation for training: every field between the ideal value and ``p``'s
-    (uniform; offsets of either sign)."""
-    out = {}
-    for k, v in p.active().items():
-        ideal = PerturbConfig.model_fields[k].default
-        u = rng.uniform(0.0, 1.0)
-        if k in ("mount_yaw_rad", "steer_offset_rad"):
-            u = rng.uniform(-1.0, 1.0)
-        out[k] = ideal + u * (v - ideal)
-    return PerturbConfig.model_validate(out)

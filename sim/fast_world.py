@@ -61,16 +61,13 @@ class FastWorld:
         common/perturb.py): scan, car, floor friction (braking at friction x the fitted
         deceleration, sideways acceleration capped at friction x g below 1), steering offset and
         the delay of their actions (applied at the first substep after it).
-    :param perturb_random: draw each world's perturbation anew at each of its resets, every
-        field between the ideal value and ``perturb``'s (training; the car's mount yaw, mass and
-        the friction stay ideal).
     """
 
     def __init__(self, n_envs: int = 1, world="racetrack", car="slash", n_obstacles: int = 15,
                  heading: str = "default", driver="centerline", obstacle_lidar: bool | None = None,
                  agent_speed_scale: float | None = None, control_period: float | None = None,
                  physics_substeps: int | None = None, seed: int | None = None,
-                 parallel: bool = False, scenarios=None, perturb=None, perturb_random: bool = False):
+                 parallel: bool = False, scenarios=None, perturb=None):
         self.scenarios = list(scenarios or [])
         if self.scenarios:
             # scenario episodes: the ego and the scenario's kinematic actors (sim/actors.py)
@@ -89,9 +86,7 @@ class FastWorld:
         if isinstance(car, str):
             car = vehicle_mod.load_car(car)
         self.perturb = P.make(perturb)
-        self.perturb_random = perturb_random
-        if not perturb_random:
-            car = P.perturbed_car(car, self.perturb)
+        car = P.perturbed_car(car, self.perturb)
         if heading not in ("default", "reversed"):
             raise ValueError(f"heading: expected 'default' or 'reversed', got {heading!r}")
         if not 0 <= n_obstacles <= 15:
@@ -166,9 +161,8 @@ class FastWorld:
         self.bad_actions = 0  # non-finite agent actions replaced by 0 (counted)
         self.rng = np.random.default_rng(seed)
         self._prng = P.trial_rng(0 if seed is None else seed)
-        # each world's perturbation (perturb_random: drawn at its resets), the agents' scans as
-        # they see them, and their recent actions for the delay (newest first)
-        self.env_perturb = [self.perturb] * N
+        # the perturbation's state: the agents' scans as they see them, and their recent actions
+        # for the delay (newest first)
         self.obs_ranges = self.ranges[:, 0].copy() if self.perturb.active() else None
         self.steer_offset = f(N)
         self.delay = f(N)
@@ -207,7 +201,7 @@ class FastWorld:
         # the floor's friction (perturb): the fitted tyre model is kept; a braking car skids at
         # friction x its fitted deceleration, and below 1 the sideways acceleration is capped at
         # friction x g (PyBullet's Coulomb friction slides there)
-        fr = 1.0 if self.perturb_random else self.perturb.friction
+        fr = self.perturb.friction
         self.brake_decel = float(b.brake_decel) * fr
         self.a_lat_max = fr * GRAVITY if fr < 1.0 else math.inf
         self.scrub = float(getattr(b, "scrub", 0.0))
@@ -219,28 +213,12 @@ class FastWorld:
         self.rng = np.random.default_rng(seed)
         self._prng = P.trial_rng(0 if seed is None else seed)
 
-    def randomise(self, perturb) -> None:
-        """From the next resets on, each world draws its own perturbation between the ideal world
-        and ``perturb`` (training; see the constructor's ``perturb_random``)."""
-        if self.perturb.active() and not self.perturb_random:
-            raise ValueError("perturb: this world already runs under a fixed perturbation")
-        self.perturb, self.perturb_random = P.make(perturb), True
-        if self.obs_ranges is None and self.perturb.active():
-            self.obs_ranges = self.ranges[:, 0].copy()
-        self._set_perturb_arrays(np.arange(self.n_envs))
-
     def _set_perturb_arrays(self, envs) -> None:
-        """Per-world perturbation state of ``envs`` at a reset (perturb_random: a new draw)."""
-        for n in envs:
-            if self.perturb_random:
-                self.env_perturb[n] = P.draw(self.perturb, self._prng)
-                scale = self.agent_speed_scale * self.env_perturb[n].motor_gain
-                self.w[n, 0] *= self.speed_scale[n, 0] / scale  # the same body speed
-                self.speed_scale[n, 0] = scale
-            p = self.env_perturb[n]
-            self.steer_offset[n] = p.steer_offset_rad
-            self.delay[n] = p.latency_s + p.actuator_delay_s
-            self.jitter[n] = p.scan_jitter_s
+        """The perturbation's per-world state of ``envs`` (at a restart: the action history cleared)."""
+        p = self.perturb
+        self.steer_offset[envs] = p.steer_offset_rad
+        self.delay[envs] = p.latency_s + p.actuator_delay_s
+        self.jitter[envs] = p.scan_jitter_s
         most = float((self.delay + self.jitter).max())
         need = int(math.ceil(most / self.control_period)) + 2 if most > 0 else 1
         if need > self._hist_a.shape[1]:
@@ -482,7 +460,7 @@ class FastWorld:
                     self.ranges)
         if self.obs_ranges is not None:  # the agents' scans as their sensor service publishes them
             for n in np.flatnonzero(observe[:, 0]):
-                self.obs_ranges[n] = P.perturb_scan(self.ranges[n, 0], self.spec, self.env_perturb[n], self._prng)
+                self.obs_ranges[n] = P.perturb_scan(self.ranges[n, 0], self.spec, self.perturb, self._prng)
 
     def seen_by_agent(self, envs: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
         """(len(envs), C - 1) bool: the other cars that return at least one ray of the agent's

@@ -134,18 +134,6 @@ def test_fast_world_delays_the_agents_actions():
     assert fw.delta[0, 0] == pytest.approx(0.05, abs=1e-3)
 
 
-def test_training_option_draws_per_world():
-    """EnvConfig.perturb: each world of the batch draws its own perturbation at its resets."""
-    from racecav.training.env import make_worlds
-
-    w = make_worlds(EnvConfig(n_obstacles=2, perturb="worn-car,late-computer"), n_envs=8, seed=0)[0]
-    w.reset(seed=0)
-    offs = w.steer_offset.copy()
-    assert len(set(offs.round(6))) == 8 and np.abs(offs).max() <= 0.0175
-    assert (w.delay > 0).all() and (w.delay <= 0.07 + 1e-9).all()
-    w.step(np.zeros((8, 2)))
-
-
 class _Listen:
     def __init__(self, session, key, cls):
         self.items, self.cls, self._lock = [], cls, threading.Lock()

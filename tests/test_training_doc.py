@@ -48,6 +48,12 @@ def test_a_removed_setting_loads_turned_off_and_is_refused_turned_on(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "env": {"lane_keeping": 2.0}}))
     with pytest.raises(ValueError, match=f"env.lane_keeping = 2.0 .*{EXPERIMENTS_COMMIT}"):
         load_run_config(tmp_path)
+    # training under randomised perturbations (row 97): its own commit; a recipe stage's null loads
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "env": {"perturb": None}}))
+    assert load_run_config(tmp_path)[0].env.obs_stack == 1
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "env": {"perturb": {"latency_s": 0.1}}}))
+    with pytest.raises(ValueError, match=r"env.perturb = .*commit dc49441"):
+        load_run_config(tmp_path)
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "stage": "dagger", "expert": "mirror"}))
     with pytest.raises(ValueError, match=f"expert = 'mirror'.*{EXPERIMENTS_COMMIT}"):
         load_run_config(tmp_path)

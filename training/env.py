@@ -102,11 +102,6 @@ def make_worlds(settings: EnvConfig, n_envs: int, seed: int | None = None, drive
                           parallel=settings.parallel)
             w.scenario_families = families[name]  # the curriculum's grouping (training/vec_env.py)
             worlds.append(w)
-    if settings.perturb is not None:  # sim-to-real perturbations drawn per world and episode
-        if settings.backend != "fast":
-            raise ValueError("perturb: randomised perturbations are a fast-backend option")
-        for w in worlds:
-            w.randomise(settings.perturb)
     return worlds
 
 

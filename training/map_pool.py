@@ -79,7 +79,5 @@ class MapPool:
             w = FastWorld(n_envs=n, scenarios=scs, car=env_car(st), control_period=st.control_period_s,
                           seed=None if seed is None else seed + 7919 * (i + 1), parallel=st.parallel)
             w.scenario_families = fams  # the curriculum's grouping (training/vec_env.py)
-            if st.perturb is not None:  # as make_worlds: perturbations drawn per world and episode
-                w.randomise(st.perturb)
             worlds.append(w)
         return worlds

@@ -102,10 +102,11 @@ REMOVED_SETTINGS = {
 """TrainConfig settings of rejected ablation rows, now gone, with the value that turned each off
 (_ANY: it acted only together with another one here)."""
 REMOVED_ENV_SETTINGS = {"contact_penalty": 0.0, "lane_keeping": 0.0, "lane_keeping_horizon_s": _ANY,
-                        "hold_heading": 0.0, "hold_track": 0.0, "proximity_penalty": 0.0}
+                        "hold_heading": 0.0, "hold_track": 0.0, "proximity_penalty": 0.0, "perturb": None}
 """The same for EnvConfig."""
-REMOVED_AT: dict[str, str] = {}
-"""Settings removed after EXPERIMENTS_COMMIT, with the commit that still has their code."""
+REMOVED_AT = {"env.perturb": "dc49441"}
+"""Settings removed after EXPERIMENTS_COMMIT, with the commit that still has their code (training
+under randomised perturbations: ablation row 97, docs/robustness.md)."""
 
 
 def drop_removed(data: dict, run_dir) -> None:
