@@ -471,11 +471,6 @@ class EnvConfig(Section):
     False: every train file equally often. Families: each suite's own (its manifest), a
     plain scenario file is its own family (common/scenario.scenario_sources). The training VecEnv's option (training/vec_env.FamilyCurriculum); the single
     gym env draws uniformly."""
-    map_curriculum: bool = False
-    """With curriculum and scenario_maps: draw the maps by the same failure rates as the files, each
-    source of ``scenarios`` weighted by its families' mean weight (training/map_pool.py), so the
-    roads a policy fails on come round more often; False: every source as often as any other. A
-    roads suite has one file per map: without this the curriculum never reaches across its maps."""
     curriculum_boost: dict[str, float] = {}
     """With curriculum: family -> factor on its draw weight (e.g. ``paper-timed/cross-left=3``;
     on the CLI "FAMILY=W[,FAMILY=W]"), for families that look alike until late (a crossing car to
@@ -505,21 +500,12 @@ class EnvConfig(Section):
     def _boost_needs_curriculum(self):
         if self.curriculum_boost and not self.curriculum:
             raise ValueError("curriculum_boost: weighs the curriculum's draw; set curriculum too")
-        if self.map_curriculum and not (self.curriculum and self.scenario_maps):
-            raise ValueError("map_curriculum: weighs the draw of a map pool by the curriculum's failure rates; "
-                             "set curriculum and scenario_maps too")
         return self
 
     lidar: Literal["paper", "wide"] = "paper"
     """The scan the policy sees (common/lidar.VIEWS): paper = 170 rays over the frontal 90 deg;
     wide = 169 rays over +-89.7 deg (every second ray of the paper's spacing). The policy's
     metadata carries it; the sim and the sensor then publish common/lidar.WIDE_SCAN."""
-    stand_input: float = Field(0.0, ge=0, le=10)
-    """Observation also holds the seconds the ego has stood still (speed below
-    common/vehicle.STAND_SPEED; on the car: the VESC's), capped at this many: a policy that sees
-    only its last scans cannot tell a stop it has just begun from one it has held for seconds.
-    0: scans only. The training VecEnv's option (training/vec_env.FastVecEnv) so far: the services
-    do not feed the ego's speed to the policy yet."""
     obs_stack: int = Field(1, ge=1, le=4)
     """Observation = the newest ``obs_stack`` scans, newest first (1: the paper's single scan).
     More than one shows motion; the policy service stacks the same way (policy metadata)."""

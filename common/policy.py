@@ -56,11 +56,8 @@ class NumpyPolicy:
         self.metadata = dict(metadata or {})
         self.obs_stack = int(self.metadata.get("obs_stack", 1))
         """Scans per observation, newest first (1: the paper's single scan)."""
-        self.stand_input = float(self.metadata.get("stand_input") or 0.0)
-        """The stand timer's cap (EnvConfig.stand_input): the last input, after the scans; 0: none."""
-        n_scan = self.obs_dim - (1 if self.stand_input else 0)
-        if self.obs_stack < 1 or n_scan % self.obs_stack:
-            raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the scans' input size {n_scan}")
+        if self.obs_stack < 1 or self.obs_dim % self.obs_stack:
+            raise ValueError(f"policy metadata: obs_stack {self.obs_stack} does not divide the input size {self.obs_dim}")
         self.obs_stride = int(self.metadata.get("obs_stride", 1))
         """Scan periods between the stacked scans (1: consecutive)."""
         if self.obs_stride < 1:

@@ -224,16 +224,6 @@ def throttle_from_action(a_throttle):
     return np.clip(a_throttle, 0.0, 1.0)
 
 
-STAND_SPEED = 0.05
-"""m/s: a car slower than this stands (EnvConfig.stand_input's timer)."""
-
-
-def stood_seconds(stood, speed, dt: float, cap: float):
-    """The stand timer after a step of ``dt`` s at ``speed`` (m/s): grows while the car stands,
-    back to 0 once it moves; capped at ``cap`` s."""
-    return np.where(np.abs(speed) < STAND_SPEED, np.minimum(np.asarray(stood) + dt, cap), 0.0)
-
-
 def brake_from_action(a_throttle, brake_below: float | None):
     """True where the car brakes: a policy trained with a brake action (``brake_below``, e.g.
     -0.5) brakes when a_T < brake_below (wheel speed target 0 in the sim, the VESC's brake

@@ -54,6 +54,10 @@ def test_a_removed_setting_loads_turned_off_and_is_refused_turned_on(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "env": {"perturb": {"latency_s": 0.1}}}))
     with pytest.raises(ValueError, match=r"env.perturb = .*commit dc49441"):
         load_run_config(tmp_path)
+    # the recipe's tried stages (the stand timer, the map curriculum): their commit
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "env": {"stand_input": 3.0}}))
+    with pytest.raises(ValueError, match=r"env.stand_input = 3.0 .*commit 814eb57"):
+        load_run_config(tmp_path)
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "stage": "dagger", "expert": "mirror"}))
     with pytest.raises(ValueError, match=f"expert = 'mirror'.*{EXPERIMENTS_COMMIT}"):
         load_run_config(tmp_path)

@@ -220,9 +220,6 @@ class OvertakeEnv(gym.Env):
             if getattr(st, term):
                 raise ValueError(f"{term}: a reward term of the training VecEnv only (training/vec_env.FastVecEnv, "
                                  "--preset fast); this env keeps the paper's reward")
-        if st.stand_input:
-            raise ValueError("stand_input: an option of the training VecEnv only (training/vec_env.FastVecEnv, "
-                             "--preset fast) so far")
         if st.scenarios and st.backend == "bullet":
             from racecav.common.scenario import load_scenario, scenario_files
 

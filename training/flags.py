@@ -17,7 +17,7 @@ ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-o
              "scenario_share": "--scenario-share", "obs_stack": "--obs-stack", "obs_stride": "--obs-stride",
              "flow_reward": "--flow-reward", "progress_reward": "--progress-reward", "brake_below": "--brake-below",
              "curriculum": "--curriculum", "curriculum_boost": "--curriculum-boost", "lidar": "--lidar",
-             "scenario_maps": "--scenario-maps", "map_curriculum": "--map-curriculum", "stand_input": "--stand-input"}
+             "scenario_maps": "--scenario-maps"}
 """EnvConfig fields that are flags (field -> flag)."""
 
 

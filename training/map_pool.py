@@ -8,10 +8,7 @@ and :meth:`FastVecEnv.resample_maps` draws K maps again: every few rollouts the 
 other roads. The maps are drawn without replacement, each source of ``scenarios`` (a suite, a
 folder, a file: the comma-separated parts) as often as any other, spread over its files: a suite
 of 720 one-file maps does not crowd out one of 1,400 files on two maps. Inside a map its files
-are drawn as before. With EnvConfig.map_curriculum the draw also follows the curriculum: each
-file counts with its family's weight (training/vec_env.FamilyCurriculum.family_weights), so a
-source whose families the policy fails gets more of the batch, and inside a source so do the maps
-of its failing families; a passed family keeps the curriculum's floor weight.
+are drawn as before.
 
 Resampling cuts the episodes running in the scenario worlds (a new episode starts there, with no
 done flag): call it between rollouts of an imitation run (DAgger). A PPO run would need the cut
@@ -35,7 +32,7 @@ class MapPool:
 
         self.settings = settings
         self.groups: dict[str, tuple[list, list[str]]] = {}
-        share: dict[str, list[float]] = {}  # map -> each file's share of the draw (1 / its source's files)
+        weight: dict[str, float] = {}
         parts = [p.strip() for p in str(settings.scenarios).split(",") if p.strip()]
         for part in parts:
             files = scenario_sources(part, "train")
@@ -44,10 +41,9 @@ class MapPool:
                 scs, fams = self.groups.setdefault(sc.world_key, ([], []))
                 scs.append(sc)
                 fams.append(family)
-                share.setdefault(sc.world_key, []).append(1.0 / len(files))
+                weight[sc.world_key] = weight.get(sc.world_key, 0.0) + 1.0 / len(files)
         self.keys = list(self.groups)
-        self.share = [np.array(share[k]) for k in self.keys]
-        w = np.array([s.sum() for s in self.share])
+        w = np.array([weight[k] for k in self.keys])
         self.p = w / w.sum()
         """(maps,) each map's draw probability: every source's share equal, spread over its files."""
         self.k = min(int(settings.scenario_maps), len(self.keys))
@@ -56,16 +52,9 @@ class MapPool:
         base = n_envs // self.k
         self.sizes = [base + (1 if i < n_envs - base * self.k else 0) for i in range(self.k)]
 
-    def draw(self, rng: np.random.Generator, weigh=None) -> list[str]:
-        """K distinct maps, weighted by ``p``; with ``weigh`` (families -> weights: the curriculum's
-        ``family_weights``) each file's share is multiplied by its family's weight."""
-        p = self.p
-        if weigh is not None:
-            fams = sorted({f for k in self.keys for f in self.groups[k][1]})
-            w_of = dict(zip(fams, weigh(fams)))
-            w = np.array([(s * [w_of[f] for f in self.groups[k][1]]).sum() for k, s in zip(self.keys, self.share)])
-            p = w / w.sum()
-        return [self.keys[i] for i in rng.choice(len(self.keys), self.k, replace=False, p=p)]
+    def draw(self, rng: np.random.Generator) -> list[str]:
+        """K distinct maps (weighted by ``p``)."""
+        return [self.keys[i] for i in rng.choice(len(self.keys), self.k, replace=False, p=self.p)]
 
     def build(self, keys: list[str], seed: int | None) -> list:
         """One FastWorld per map of ``keys``, sized by ``sizes``."""

@@ -8,7 +8,7 @@ from racecav.training.runs import load_run_config, run_dir_of
 
 
 def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: float | None = None,
-                           lidar: str = "paper", obs_stride: int = 1, stand_input: float = 0.0):
+                           lidar: str = "paper", obs_stride: int = 1):
     """NumpyPolicy of an SB3 checkpoint (+ its ``.vecnorm.pkl`` normalisation if present); the
     arguments are the run's env settings its metadata records (EnvConfig)."""
     import pickle
@@ -26,15 +26,13 @@ def policy_from_checkpoint(zip_path: Path, obs_stack: int = 1, brake_below: floa
         n_in = arrays["w0"].shape[0]  # the actor's inputs (a privileged critic reads more)
         arrays.update(obs_mean=norm.obs_rms.mean[:n_in], obs_var=norm.obs_rms.var[:n_in],
                       obs_clip=norm.clip_obs, obs_eps=norm.epsilon)
-    meta = {"obs_stack": obs_stack, "obs_stride": obs_stride, "brake_below": brake_below, "lidar": lidar}
-    if stand_input:
-        meta["stand_input"] = stand_input
-    return NumpyPolicy(arrays, meta)
+    return NumpyPolicy(arrays, {"obs_stack": obs_stack, "obs_stride": obs_stride, "brake_below": brake_below,
+                                "lidar": lidar})
 
 
 def checkpoint_policy(zip_path: Path):
     """NumpyPolicy of a run's checkpoint (``<run>/checkpoints/step_N.zip`` or ``<run>/latest.zip``)
-    with the env settings of the run's config.json (its view, stack, stride, brake and stand timer)."""
+    with the env settings of the run's config.json (its view, stack, stride and brake)."""
     zip_path = Path(zip_path)
     if not zip_path.is_file():
         raise FileNotFoundError(f"checkpoint {zip_path}: no such file")
@@ -42,7 +40,7 @@ def checkpoint_policy(zip_path: Path):
     if not (run_dir / "config.json").is_file():
         raise FileNotFoundError(f"checkpoint {zip_path}: no run record {run_dir / 'config.json'} (its env settings)")
     env = load_run_config(run_dir)[0].env
-    return policy_from_checkpoint(zip_path, env.obs_stack, env.brake_below, env.lidar, env.obs_stride, env.stand_input)
+    return policy_from_checkpoint(zip_path, env.obs_stack, env.brake_below, env.lidar, env.obs_stride)
 
 
 def named_policy(spec: str):

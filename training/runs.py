@@ -102,11 +102,13 @@ REMOVED_SETTINGS = {
 """TrainConfig settings of rejected ablation rows, now gone, with the value that turned each off
 (_ANY: it acted only together with another one here)."""
 REMOVED_ENV_SETTINGS = {"contact_penalty": 0.0, "lane_keeping": 0.0, "lane_keeping_horizon_s": _ANY,
-                        "hold_heading": 0.0, "hold_track": 0.0, "proximity_penalty": 0.0, "perturb": None}
+                        "hold_heading": 0.0, "hold_track": 0.0, "proximity_penalty": 0.0, "perturb": None,
+                        "map_curriculum": False, "stand_input": 0.0}
 """The same for EnvConfig."""
-REMOVED_AT = {"env.perturb": "dc49441"}
+REMOVED_AT = {"env.perturb": "dc49441", "env.map_curriculum": "814eb57", "env.stand_input": "814eb57"}
 """Settings removed after EXPERIMENTS_COMMIT, with the commit that still has their code (training
-under randomised perturbations: ablation row 97, docs/robustness.md)."""
+under randomised perturbations: ablation rows 97-98, docs/robustness.md; the recipe's tried
+stages focus and stand: docs/training_notes.md)."""
 
 
 def drop_removed(data: dict, run_dir) -> None:

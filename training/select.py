@@ -216,14 +216,12 @@ def select(args, cfg) -> int:
         prev = done.get(n)
         if prev and (args.no_intersection or int(prev.get("trials") or 0) == args.trials):
             if free and prev.get("free_success") in (None, ""):  # evaluated before the column: add it alone
-                pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar, tc.env.obs_stride,
-                                             tc.env.stand_input)
+                pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar, tc.env.obs_stride)
                 prev = {**prev, "free_success": free_success(pol, tc.env, free, args.suite_episodes)}
                 log.info("%s: free_success %.3f added", ck.name, prev["free_success"])
             rows.append(prev)
             continue
-        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar, tc.env.obs_stride,
-                                     tc.env.stand_input)
+        pol = policy_from_checkpoint(ck, tc.env.obs_stack, tc.env.brake_below, tc.env.lidar, tc.env.obs_stride)
         row = {"timesteps": n, "checkpoint": ck.name, **eval_env(pol, tc.env, args.episodes)}
         if not args.no_intersection:
             row.update(selection_cells(pol, tc.env, args.trials, args.suite_episodes, conflict, free))

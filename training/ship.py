@@ -67,14 +67,10 @@ def ship(args, cfg) -> int:
             "observation": (f"sanitised lidar ranges (common/lidar.sanitize), the {tc.env.lidar!r} view "
                             f"(common/lidar.VIEWS, {VIEWS[tc.env.lidar].n_rays} rays), m"
                             + (f"; {tc.env.obs_stack} scans {tc.env.obs_stride} scan period(s) apart, newest first"
-                               if tc.env.obs_stack > 1 else "")
-                            + (f"; then the seconds the ego has stood, up to {tc.env.stand_input}"
-                               if tc.env.stand_input else "")),
+                               if tc.env.obs_stack > 1 else "")),
             "action": "[a_T, a_delta] in [-1, 1]: Gaussian mean (deterministic)"
                       + (f"; a_T < {tc.env.brake_below} brakes" if tc.env.brake_below is not None else ""),
             "brake_below": tc.env.brake_below}
-    if tc.env.stand_input:
-        meta["stand_input"] = tc.env.stand_input
     if recipe is not None:
         meta["recipe"] = recipe
     dst = MODELS_DIR / f"{args.name}.npz"

@@ -179,8 +179,6 @@ def init_normalization(venv, tc):
     """Start a new run's VecNormalize ``venv`` from the statistics beside ``tc.init_from`` (if
     any): the weights expect the statistics they were trained with; a 1-scan policy's serve every
     scan of a stack."""
-    import numpy as np
-
     init_norm = Path(tc.init_from).with_suffix(".vecnorm.pkl") if tc.init_from else None
     if init_norm is None or not init_norm.is_file():
         return venv
@@ -188,13 +186,9 @@ def init_normalization(venv, tc):
         old = pickle.load(f)
     src_view, view = source_view(Path(tc.init_from)), VIEWS[tc.env.lidar]
     venv.ret_rms = old.ret_rms
-    mean, var = (map_inputs(a, src_view, view, tc.env.obs_stack, stats=True)
-                 for a in (old.obs_rms.mean, old.obs_rms.var))
-    # inputs after the scans (the stand timer, EnvConfig.stand_input) start at 0 +- 1: seconds as
-    # they are, which needs no adapting
-    extra = venv.obs_rms.mean.shape[0] - mean.shape[0]
-    venv.obs_rms.mean = np.concatenate([mean, np.zeros(extra)])
-    venv.obs_rms.var = np.concatenate([var, np.ones(extra)])
+    venv.obs_rms.mean, venv.obs_rms.var = (
+        map_inputs(a, src_view, view, tc.env.obs_stack, stats=True)
+        for a in (old.obs_rms.mean, old.obs_rms.var))
     # a new view's outer rays start from the nearest old ray's statistics: a smaller count lets
     # them adapt within ~1 M samples
     venv.obs_rms.count = old.obs_rms.count if src_view == view else min(old.obs_rms.count, 1e5)
@@ -289,9 +283,6 @@ def init_weights(model, path: Path, std: float | None = None, view=None, stride:
         if k in dst and (dst[k].shape != v.shape or (k.endswith("net.0.weight") and src_view != view)):
             if k.endswith("net.0.weight") and v.shape[1] % src_view.n_rays == 0:
                 src[k] = torch.as_tensor(map_inputs(v.numpy(), src_view, view, n_stack))
-                extra = dst[k].shape[1] - src[k].shape[1]
-                if extra > 0:  # inputs after the scans (EnvConfig.stand_input): zero weights at first
-                    src[k] = torch.cat([src[k], torch.zeros(src[k].shape[0], extra, dtype=src[k].dtype)], 1)
             if src[k].shape != dst[k].shape:
                 raise ValueError(f"--init-from {path}: {k} has shape {tuple(v.shape)}, the model {tuple(dst[k].shape)}")
     src_stride = int(source_env(path, "obs_stride", 1))

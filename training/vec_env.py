@@ -23,7 +23,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from racecav.common.config import EnvConfig
-from racecav.common.vehicle import brake_from_action, stood_seconds
+from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward, scenario_envs
 from racecav.training.flow_reward import flow_reward, flow_weights
 
@@ -36,30 +36,24 @@ class FamilyCurriculum:
     equally likely. Families are grouped across the batch's scenario
     worlds (a family may span world geometries); each world's draw is renormalised. The
     history is not checkpointed: a resumed run relearns it in its first episodes.
-
-    :param history: family -> its recent outcomes, shared with the curriculum of the next maps
-        (``FastVecEnv.resample_maps``), so a family keeps its record while none of its maps is drawn.
     """
 
     WINDOW = 200  # episodes per family in the failure rate
     FLOOR = 0.1
     MIN_EPISODES = 20  # before this, a family counts as failing half the time
 
-    def __init__(self, worlds: list, boost: dict[str, float] | None = None,
-                 history: dict[str, deque] | None = None):
+    def __init__(self, worlds: list, boost: dict[str, float] | None = None):
         self.worlds = [w for w in worlds if w.actors is not None]
         self.names = sorted({f for w in self.worlds for f in w.scenario_families})
         unknown = sorted(set(boost or {}) - set(self.names))
         if unknown:
             raise ValueError(f"curriculum_boost: no family {', '.join(unknown)} in the scenarios "
                              f"(families: {', '.join(self.names)})")
-        self.boost_of = dict(boost or {})
-        self.boost = np.array([self.boost_of.get(f, 1.0) for f in self.names])
+        self.boost = np.array([(boost or {}).get(f, 1.0) for f in self.names])
         ids = {f: i for i, f in enumerate(self.names)}
         self.fam_of = [np.array([ids[f] for f in w.scenario_families]) for w in self.worlds]
         self._files_of_fam = [np.bincount(fam, minlength=len(self.names))[fam] for fam in self.fam_of]
-        self.store = {} if history is None else history
-        self.history = [self.store.setdefault(f, deque(maxlen=self.WINDOW)) for f in self.names]
+        self.history = [deque(maxlen=self.WINDOW) for _ in self.names]
         self.update()
 
     def record(self, world, envs: np.ndarray, success: np.ndarray) -> None:
@@ -72,17 +66,6 @@ class FamilyCurriculum:
         """Family -> success rate over its window (NaN before MIN_EPISODES episodes)."""
         return {f: (float(np.mean(h)) if len(h) >= self.MIN_EPISODES else float("nan"))
                 for f, h in zip(self.names, self.history)}
-
-    def family_weights(self, names: list[str]) -> np.ndarray:
-        """The draw weight of each family of ``names``, from its record in the shared history (a
-        family not drawn yet, or drawn fewer than MIN_EPISODES times, counts as failing half the
-        time): the map pool's draw with EnvConfig.map_curriculum."""
-        rate = []
-        for f in names:
-            h = self.store.get(f, ())
-            rate.append(float(np.mean(h)) if len(h) >= self.MIN_EPISODES else 0.5)
-        boost = np.array([self.boost_of.get(f, 1.0) for f in names])
-        return np.maximum(1.0 - np.array(rate), self.FLOOR) * boost
 
     def update(self) -> None:
         rate = np.array(list(self.success_rates().values()))
@@ -135,9 +118,6 @@ class FastVecEnv(VecEnv):
         self.n_stack, self.stride = self.settings.obs_stack, self.settings.obs_stride
         n_obs = self.n_stack * spec.n_rays
         low, high = np.full(n_obs, spec.range_min, np.float32), np.full(n_obs, spec.range_max, np.float32)
-        self.stand_cap = float(self.settings.stand_input)
-        if self.stand_cap:  # the stand timer after the scans (EnvConfig.stand_input)
-            low, high = np.append(low, np.float32(0.0)), np.append(high, np.float32(self.stand_cap))
         obs_space = gym.spaces.Box(low, high, dtype=np.float32)
         act_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = None
@@ -148,13 +128,10 @@ class FastVecEnv(VecEnv):
         for w, sl in zip(self.worlds, self.slices):
             self.is_scenario[sl] = w.actors is not None
         self.a_prev = np.zeros(n, dtype=np.float64)
-        self.stood = np.zeros(n)  # s each ego has stood (EnvConfig.stand_input)
         self._actions = np.zeros((n, 2))
         # each world's newest (n_stack - 1) * stride + 1 scans, newest first (common/policy.ScanStack)
         self._stack = np.zeros((n, (self.n_stack - 1) * self.stride + 1, spec.n_rays), np.float32)
-        self.family_history: dict[str, deque] = {}  # the curriculum's record, kept across map draws
-        self.curriculum = (FamilyCurriculum(self.worlds, self.settings.curriculum_boost, self.family_history)
-                           if self.settings.curriculum and self.is_scenario.any() else None)
+        self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost) if self.settings.curriculum and self.is_scenario.any() else None
         if seed is not None:
             self.seed(seed)
 
@@ -171,18 +148,13 @@ class FastVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.a_prev[:] = 0.0
-        self.stood[:] = 0.0
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._stack[:] = obs[:, None]
         return self._stacked()
 
     def _stacked(self) -> np.ndarray:
-        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened
-        (then the stand timer, with EnvConfig.stand_input)."""
-        obs = self.stacked_view(self.n_stack, self.stride)
-        if self.stand_cap:
-            obs = np.concatenate([obs, self.stood[:, None].astype(np.float32)], axis=1)
-        return obs
+        """The observations: each world's ``n_stack`` scans ``stride`` apart, newest first, flattened."""
+        return self.stacked_view(self.n_stack, self.stride)
 
     def stacked_view(self, n_stack: int, stride: int) -> np.ndarray:
         """The raw scans as a policy with its own ``n_stack`` and ``stride`` sees them (e.g. a frozen
@@ -209,8 +181,6 @@ class FastVecEnv(VecEnv):
             bb = self.settings.brake_below  # None (the paper's action): no brake mask on the hot path
             o, (t, d), c, _info = w.step(a, brake=None if bb is None else brake_from_action(a[:, 0], bb))
             dprog.append(w.progress() - p0)
-            if self.stand_cap:
-                self.stood[sl] = stood_seconds(self.stood[sl], w.v[:, 0], w.control_period, self.stand_cap)
             if flow is not None:
                 flow.append(flow_reward(self.settings.flow_reward, directions, w.x[:, 0] - x0, w.y[:, 0] - y0))
             obs_parts.append(o)
@@ -247,7 +217,6 @@ class FastVecEnv(VecEnv):
                 if idx.size:
                     w.reset_worlds(idx)
                     self._stack[sl][idx] = w.agent_obs()[idx][:, None]  # a new episode: no history
-            self.stood[dones] = 0.0
             obs = self._stacked()
             self.a_prev[dones] = 0.0
             if self.curriculum is not None:
@@ -262,16 +231,18 @@ class FastVecEnv(VecEnv):
             raise ValueError("resample_maps: the env has no map pool (set scenario_maps)")
         rng = self.map_rng if seed is None else np.random.default_rng(seed)
         first = next(i for i, w in enumerate(self.worlds) if w.actors is not None)
-        weigh = self.curriculum.family_weights if self.settings.map_curriculum and self.curriculum else None
-        new = self.map_pool.build(self.map_pool.draw(rng, weigh), seed=int(rng.integers(2**31)))
+        new = self.map_pool.build(self.map_pool.draw(rng), seed=int(rng.integers(2**31)))
         self.worlds[first:] = new
         self.world = self.worlds[0]
         for w, sl in zip(new, self.slices[first:]):
             self._stack[sl] = w.reset()[:, None]
             self.a_prev[sl] = 0.0
-            self.stood[sl] = 0.0
         if self.curriculum is not None:
-            self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost, self.family_history)
+            old = dict(zip(self.curriculum.names, self.curriculum.history))
+            self.curriculum = FamilyCurriculum(self.worlds, self.settings.curriculum_boost)
+            for name, h in zip(self.curriculum.names, self.curriculum.history):
+                h.extend(old.get(name, ()))
+            self.curriculum.update()
 
     def close(self) -> None:
         pass

@@ -47,9 +47,6 @@ class PolicyService(ControllerService):
         pcfg = cfg.policy
         car = load_car(pcfg.car)
         policy = policy if policy is not None else load_policy(pcfg.model)
-        if policy.stand_input:
-            raise ValueError(f"policy {pcfg.model!r}: reads the stand timer (metadata stand_input, "
-                             "EnvConfig.stand_input), which the services do not feed the policy yet")
         # the policy's view (metadata "lidar"): a scan holding it is answered (services/controller.py)
         super().__init__(cfg, "policy", car, pcfg.max_scan_age_s, view=policy.lidar)
         self.model_ref = pcfg.model
