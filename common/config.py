@@ -600,11 +600,6 @@ class TrainConfig(Section):
     """Each imitation minibatch half the steps where the teacher steers round a car
     (YieldTeacher.steered), half its other labels (rows 92-94 of docs/training.md; row 95, the
     shipped avoid, without)."""
-    balance_standing: bool = False
-    """dagger: each imitation minibatch half the steps where the ego stands (below
-    common/vehicle.STANDING_SPEED), half the others. The recipe's student froze where its teacher said
-    go: a sixth of its aggregate is standing steps, labelled go in 97 % of them, yet it braked or
-    coasted in still scenes with a car 1-3 m away (docs/training_notes.md)."""
     grad_steps: int = Field(400, ge=1)
     """dagger: gradient steps (minibatches of batch_size) after each rollout."""
     dataset_max: int = Field(1_500_000, ge=1)

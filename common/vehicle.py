@@ -224,10 +224,6 @@ def throttle_from_action(a_throttle):
     return np.clip(a_throttle, 0.0, 1.0)
 
 
-STANDING_SPEED = 0.05
-"""m/s: below this a car is standing (evaluation/metrics.py's frozen test, dagger's --balance-standing)."""
-
-
 def brake_from_action(a_throttle, brake_below: float | None):
     """True where the car brakes: a policy trained with a brake action (``brake_below``, e.g.
     -0.5) brakes when a_T < brake_below (wheel speed target 0 in the sim, the VESC's brake

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from racecav.common.vehicle import STANDING_SPEED
-
 
 def box_corners(x, y, yaw, length, width) -> np.ndarray:
     """Corners (T, 4, 2) of oriented rectangles centred at (x, y), counter-clockwise."""
@@ -49,7 +47,8 @@ def footprint_gap(ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- per-trial measures
 # The benchmark's definitions (docs/results.md, "Per-trial measures"); changing one changes what
 # every stored cell means, so they are constants here, not configuration.
-# STANDING_SPEED (m/s, common/vehicle.py, shared with training): below it the ego is standing.
+STANDING_SPEED = 0.05
+"""m/s: below this the ego is standing."""
 FROZEN_AFTER_S = 2.0
 """Standing longer than this while its path is free is frozen."""
 PATH_LOOKAHEAD_M = 1.5

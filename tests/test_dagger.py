@@ -108,32 +108,3 @@ def test_a_balanced_imitation_minibatch_is_half_teacher_labels():
     assert len(batches) == 3 and all(len(j) == 2048 and man[j].sum() == 1024 for j in batches)
     assert 0.01 < man[next(minibatches(rng, man, 2048, False, 1))].mean() < 0.06
     assert len(next(minibatches(rng, np.zeros(50, bool), 64, True, 1))) == 64  # no relabelled step yet
-
-
-def test_balance_standing_marks_the_steps_where_the_ego_stands():
-    """--balance-standing: the steps the balanced minibatch gives half to are the ego's standing
-    ones (below STANDING_SPEED), read from the fast worlds the teacher labels."""
-    from pathlib import Path
-    from types import SimpleNamespace
-
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    from racecav.common.config import EnvConfig
-    from racecav.common.vehicle import STANDING_SPEED
-    from racecav.training.dagger import make_teacher, teacher_labels
-    from racecav.training.vec_env import FastVecEnv
-
-    scen = Path(__file__).parent / "data" / "roads_braking_side_approach.toml"
-    fast = FastVecEnv(n_envs=4, config=EnvConfig(scenarios=str(scen), scenario_share=1.0, lidar="wide",
-                                                 brake_below=-0.5, heading="reversed"), seed=0)
-    venv = VecNormalize(fast, norm_reward=False)
-    venv.reset()
-    tc = SimpleNamespace(expert="predictive", balance_standing=True, bc_balance=False)
-    teacher = make_teacher(tc, fast)
-    go, brake = np.tile([1.0, 0.0], (4, 1)), np.tile([-1.0, 0.0], (4, 1))
-    for _ in range(5):
-        venv.step(np.where(np.arange(4)[:, None] < 2, go, brake))  # two drive off, two stay
-    label, standing = teacher_labels(teacher, tc, venv)
-    v = np.concatenate([w.v[:, 0] for w in fast.worlds])
-    assert label.shape == (4, 2)
-    assert standing.tolist() == (np.abs(v) < STANDING_SPEED).tolist() == [False, False, True, True]

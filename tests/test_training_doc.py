@@ -58,6 +58,9 @@ def test_a_removed_setting_loads_turned_off_and_is_refused_turned_on(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "env": {"stand_input": 3.0}}))
     with pytest.raises(ValueError, match=r"env.stand_input = 3.0 .*commit 814eb57"):
         load_run_config(tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "stage": "dagger", "balance_standing": True}))
+    with pytest.raises(ValueError, match=r"balance_standing = True .*commit 079c3b6"):
+        load_run_config(tmp_path)
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "stage": "dagger", "expert": "mirror"}))
     with pytest.raises(ValueError, match=f"expert = 'mirror'.*{EXPERIMENTS_COMMIT}"):
         load_run_config(tmp_path)

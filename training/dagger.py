@@ -100,14 +100,7 @@ def make_teacher(tc, fast):
 
 
 def teacher_labels(teacher, tc, venv) -> tuple[np.ndarray, np.ndarray]:
-    """(labels (N, 2), the steps of the kind --bc-balance (or --balance-standing) gives half of
-    each minibatch)."""
-    if tc.balance_standing:
-        from racecav.common.vehicle import STANDING_SPEED
-
-        v = np.concatenate([w.v[:, 0] for w in venv.venv.worlds])
-        label = teacher.labels() if tc.expert == "predictive" else teacher.labels(venv.get_original_obs())[0]
-        return label, np.abs(v) < STANDING_SPEED
+    """(labels (N, 2), the steps of the kind --bc-balance gives half of each minibatch)."""
     if tc.expert == "predictive":  # its manoeuvres round a car
         return teacher.labels(), teacher.steered()
     label, man = teacher.labels(venv.get_original_obs())
@@ -258,8 +251,7 @@ def imitate(model, venv, tc, run_dir: Path, state: dict, total: int, progress: b
                 if stop.requested:
                     break
             losses = []
-            for j in minibatches(rng, data_man[:size], tc.batch_size, tc.bc_balance or tc.balance_standing,
-                                 tc.grad_steps):
+            for j in minibatches(rng, data_man[:size], tc.batch_size, tc.bc_balance, tc.grad_steps):
                 pred = mean_action(policy, data_obs[j])
                 loss = imitation_loss(pred, torch.as_tensor(data_act[j]), lo_t, hi_t, scale)
                 opt.zero_grad()

@@ -10,7 +10,7 @@ TRAIN_FLAGS = ("seed", "n_steps", "batch_size", "n_epochs", "gamma", "learning_r
                "init_from", "init_std", "sde_sample_freq", "hidden")
 """TrainConfig fields that are flags of ``racecav train racing|overtake|dagger`` (--name-with-dashes)."""
 DAGGER_FLAGS = ("expert", "mirror_families", "expert_share", "grad_steps", "dataset_max", "bc_balance",
-                "balance_standing", "map_resample_every")
+                "map_resample_every")
 """TrainConfig fields that are flags of ``racecav train dagger``."""
 ENV_FLAGS = {"heading": "--heading", "n_envs": "--n-envs", "n_obstacles": "--n-obstacles", "driver": "--driver",
              "time_limit_s": "--time-limit", "world": "--world", "scenarios": "--scenarios",

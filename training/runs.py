@@ -97,7 +97,7 @@ REMOVED_SETTINGS = {
     "hold_until_seen": False, "hold_families": _ANY, "hold_through": _ANY, "expert_horizon_s": _ANY,
     "expert_seen": False, "expert_commit_s": None, "mirror_seen": False, "anchor_families": "",
     "anchor_from": None, "anchor_seen": False, "aux_seen": 0.0, "bc_coef": 0.0, "bc_label_steps": _ANY,
-    "bc_grad_steps": _ANY, "bc_learning_rate": _ANY,
+    "bc_grad_steps": _ANY, "bc_learning_rate": _ANY, "balance_standing": False,
 }
 """TrainConfig settings of rejected ablation rows, now gone, with the value that turned each off
 (_ANY: it acted only together with another one here)."""
@@ -105,10 +105,11 @@ REMOVED_ENV_SETTINGS = {"contact_penalty": 0.0, "lane_keeping": 0.0, "lane_keepi
                         "hold_heading": 0.0, "hold_track": 0.0, "proximity_penalty": 0.0, "perturb": None,
                         "map_curriculum": False, "stand_input": 0.0}
 """The same for EnvConfig."""
-REMOVED_AT = {"env.perturb": "dc49441", "env.map_curriculum": "814eb57", "env.stand_input": "814eb57"}
+REMOVED_AT = {"env.perturb": "dc49441", "env.map_curriculum": "814eb57", "env.stand_input": "814eb57",
+              "balance_standing": "079c3b6"}
 """Settings removed after EXPERIMENTS_COMMIT, with the commit that still has their code (training
 under randomised perturbations: ablation rows 97-98, docs/robustness.md; the recipe's tried
-stages focus and stand: docs/training_notes.md)."""
+stages focus, stand and standing: docs/training_notes.md)."""
 
 
 def drop_removed(data: dict, run_dir) -> None:
