@@ -120,13 +120,6 @@ class SensorConfig(Section):
 
     max_gap_deg: float = Field(6.0, ge=0)
     """Widest hole between good samples that preprocessing fills by interpolation (deg)."""
-    fill_step_m: float = Field(0.3, ge=0)
-    """A hole is filled only where the good samples on its two sides agree within this (m) ...
-    (dropped returns on one surface); between two surfaces it is an opening the lidar saw through
-    and stays "no return". Filling those put walls across the open road ahead: the shipped avoid
-    lost 6 points of the head-on to it (docs/robustness.md)."""
-    fill_step_rel: float = Field(0.1, ge=0)
-    """... or within this fraction of the nearer one's range."""
     spike_abs_m: float = Field(0.3, ge=0)
     """An isolated spike differs from both neighbours by more than this (m) ..."""
     spike_rel: float = Field(0.15, ge=0)

@@ -145,15 +145,11 @@ def make_scan(ranges, stamp_ns: int, seq: int, source: str, spec: LidarSpec | No
                 ranges=np.asarray(ranges, dtype=np.float32))
 
 
-def fill_holes(th: np.ndarray, r: np.ndarray, ok: np.ndarray, max_gap_deg: float,
-               max_step_m: float = math.inf, max_step_rel: float = math.inf) -> np.ndarray:
+def fill_holes(th: np.ndarray, r: np.ndarray, ok: np.ndarray, max_gap_deg: float) -> np.ndarray:
     """Samples not ``ok`` replaced by linear interpolation in angle between the nearest good
-    samples when those are at most ``max_gap_deg`` apart and their ranges agree (within
-    ``max_step_m`` or ``max_step_rel`` of the nearer): returns dropped on one surface. +inf where
-    the hole is wider, or where its two sides are different surfaces: there the lidar saw through
-    an opening, and interpolating would put a wall across it. The one hole filling of the project:
-    the sensor service's (services/sensor/preprocess.py) and the sim's for perturbed scans
-    (common/perturb.py).
+    samples when those are at most ``max_gap_deg`` apart; +inf where the hole is wider. The one
+    hole filling of the project: the sensor service's (services/sensor/preprocess.py) and the
+    sim's for perturbed scans (common/perturb.py).
 
     :param th: sorted angles (rad). :param r: ranges (m). :param ok: the trustworthy samples.
     """
@@ -168,9 +164,7 @@ def fill_holes(th: np.ndarray, r: np.ndarray, ok: np.ndarray, max_gap_deg: float
         lo = good[np.clip(right - 1, 0, good.size - 1)]
         hi = good[np.clip(right, 0, good.size - 1)]
         gap = th[hi] - th[lo]
-        step = np.abs(rr[hi] - rr[lo])
-        same = step <= np.maximum(max_step_m, max_step_rel * np.minimum(rr[lo], rr[hi]))
-        fill = has & (gap <= math.radians(max_gap_deg)) & (gap > 0) & same
+        fill = has & (gap <= math.radians(max_gap_deg)) & (gap > 0)
         w = np.where(fill, (th[bad] - th[lo]) / np.where(gap > 0, gap, 1.0), 0.0)
         out[bad[fill]] = (rr[lo] + w * (rr[hi] - rr[lo]))[fill]
     return out

@@ -84,10 +84,9 @@ def perturb_scan(ranges, spec: LidarSpec, p: PerturbConfig, rng: np.random.Gener
     ok = np.isfinite(r) & (r >= spec.range_min) & (r <= spec.range_max)
     ray = ray_angles(spec).astype(np.float64)
     th = np.concatenate([[ray[0] - spec.angle_increment], ray, [ray[-1] + spec.angle_increment]])
-    sc = SensorConfig()
+    gap = SensorConfig().max_gap_deg
     flat, okf = r.reshape(-1, r.shape[-1]), ok.reshape(-1, r.shape[-1])
-    out = np.stack([fill_holes(th, flat[i], okf[i], sc.max_gap_deg, sc.fill_step_m, sc.fill_step_rel)
-                    for i in range(flat.shape[0])])
+    out = np.stack([fill_holes(th, flat[i], okf[i], gap) for i in range(flat.shape[0])])
     out = out[:, 1:-1].reshape(np.shape(ranges))
     return scan_ranges(out, np.isfinite(out), spec)
 

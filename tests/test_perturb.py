@@ -56,19 +56,6 @@ def test_dropped_returns_share_and_the_sensor_services_hole_filling():
     ok[100] = False
     filled = fill_holes(th, np.full(SPEC.n_rays, 2.0), ok, 6.0)
     assert np.isinf(filled[50:70]).all() and filled[100] == 2.0
-    # a hole between two surfaces (a car at 2 m, the road's far end at 9 m) is an opening the
-    # lidar saw through: with the sensor's step limits it stays open, on one surface it fills
-    from racecav.common.config import SensorConfig
-
-    sc = SensorConfig()
-    r = np.full(SPEC.n_rays, 9.0)
-    r[:80] = 2.0
-    ok = np.ones(SPEC.n_rays, bool)
-    ok[80:83] = False  # 3 rays beside the car's edge
-    ok[120:123] = False  # 3 rays on the far surface
-    out = fill_holes(th, r, ok, sc.max_gap_deg, sc.fill_step_m, sc.fill_step_rel)
-    assert np.isinf(out[80:83]).all() and (out[120:123] == 9.0).all()
-    assert np.isfinite(fill_holes(th, r, ok, sc.max_gap_deg)[80:83]).all()  # without limits: a wall
 
 
 def test_unknown_keys_and_presets_are_named(tmp_path):

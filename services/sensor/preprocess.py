@@ -9,9 +9,8 @@ rightmost, no return = +inf):
 2. outliers marked: zero (the device's "no return"), NaN, outside [range_min, range_max], and
    isolated spikes (one sample far from both neighbours while the neighbours agree);
 3. outliers replaced by linear interpolation in angle between the nearest good samples, when
-   those are at most ``max_gap_deg`` apart (a lost capsule is 4.5 deg at 10 Hz) and their ranges
-   agree (``fill_step_m``, ``fill_step_rel``: one surface). Wider holes, and holes between two
-   surfaces (an opening seen through), stay "no return" (+inf): interpolating would invent a wall;
+   those are at most ``max_gap_deg`` apart (a lost capsule is 4.5 deg at 10 Hz). Wider holes
+   stay "no return" (+inf): interpolating across a long run of zeros would invent a wall;
 4. the frontal +-45 deg selected by angle and downsampled to the rays' angles ("interp": linear
    between the two bracketing samples, like the simulator's single ray per angle; "nearest"; or
    "min": the nearest return within each ray's angular bin, the conservative choice).
@@ -33,17 +32,13 @@ from racecav.common.lidar import LidarSpec, fill_holes, make_scan, ray_angles, s
 
 @dataclass(frozen=True)
 class PreprocessParams:
-    """:param max_gap_deg: widest hole (between good samples) filled by interpolation ...
-    :param fill_step_m: ... whose two sides agree within this (m) ...
-    :param fill_step_rel: ... or this fraction of the nearer range (else an opening: left open).
+    """:param max_gap_deg: widest hole (between good samples) filled by interpolation.
     :param spike_abs_m: a spike differs from both neighbours by more than this ...
     :param spike_rel: ... and by more than this fraction of the neighbours' range.
     :param downsample: "interp", "nearest" or "min" (see module doc).
     """
 
     max_gap_deg: float = 6.0
-    fill_step_m: float = 0.3
-    fill_step_rel: float = 0.1
     spike_abs_m: float = 0.3
     spike_rel: float = 0.15
     downsample: Literal["interp", "nearest", "min"] = "interp"
@@ -92,7 +87,7 @@ def clean(theta: np.ndarray, r: np.ndarray, spec: LidarSpec, p: PreprocessParams
     rr = np.asarray(r, dtype=np.float64)[order]
     ok = np.isfinite(rr) & (rr >= spec.range_min) & (rr <= spec.range_max)
     ok &= ~_spikes(rr, ok, p)
-    return th, fill_holes(th, rr, ok, p.max_gap_deg, p.fill_step_m, p.fill_step_rel)
+    return th, fill_holes(th, rr, ok, p.max_gap_deg)
 
 
 def downsample(th: np.ndarray, r: np.ndarray, spec: LidarSpec, p: PreprocessParams) -> np.ndarray:

@@ -39,8 +39,7 @@ class SensorService(Service):
         car = load_car(self.scfg.car)
         self.spec = published_scan(car.lidar, self.scfg.scan)
         self.mount_yaw = car.lidar_mount.yaw if self.scfg.mount_yaw_rad is None else self.scfg.mount_yaw_rad
-        self.params = PreprocessParams(max_gap_deg=self.scfg.max_gap_deg, fill_step_m=self.scfg.fill_step_m,
-                                       fill_step_rel=self.scfg.fill_step_rel, spike_abs_m=self.scfg.spike_abs_m,
+        self.params = PreprocessParams(max_gap_deg=self.scfg.max_gap_deg, spike_abs_m=self.scfg.spike_abs_m,
                                        spike_rel=self.scfg.spike_rel, downsample=self.scfg.downsample)
         self.pub = self.publisher(self.topic(SCAN))
         self._driver = RplidarDriver(
