@@ -89,3 +89,26 @@ def test_sees_with_the_students_lidar_view():
     assert drive(scs, TRIALS, SELECTION_SEED, "teacher", car=student_car("paper"))["collided"].all()
     r = drive(scs, TRIALS, SELECTION_SEED, "teacher")
     assert r["success"].all(), r
+
+
+def test_a_policy_drives_beside_its_teacher_on_the_same_trials(suite):
+    """--policy: a student on its own stacked scans, measured as the teacher is. A policy that
+    always brakes stands in every controls trial (frozen, no contact); one that always drives
+    at full throttle straight ahead passes the controls as the full-throttle reference does."""
+    from racecav.common.policy import NumpyPolicy
+
+    def constant(a_t: float) -> NumpyPolicy:
+        arrays = {"w0": np.zeros((2 * 169, 4)), "b0": np.zeros(4), "w1": np.zeros((4, 4)), "b1": np.zeros(4),
+                  "w2": np.zeros((4, 2)), "b2": np.array([a_t, 0.0])}
+        return NumpyPolicy(arrays, {"obs_stack": 2, "obs_stride": 4, "lidar": "wide", "brake_below": -0.5})
+
+    scs = scenarios(suite, "controls", "from-rest")
+    stand = drive(scs, TRIALS, SELECTION_SEED, "policy", policy=constant(-1.0))
+    assert stand["frozen"].all() and not stand["collided"].any()
+    assert np.isnan(stand["drive_off"]).all()
+    go = drive(scs, TRIALS, SELECTION_SEED, "policy", policy=constant(1.0))
+    full = drive(scs, TRIALS, SELECTION_SEED, "full")
+    assert (go["drive_off"] <= 1.0).all()
+    assert go["success"].tolist() == full["success"].tolist()
+    with pytest.raises(ValueError, match="policy driver"):
+        drive(scs, TRIALS, SELECTION_SEED, "policy")

@@ -550,11 +550,12 @@ def student_car(view: str = VIEW):
     return env_car(EnvConfig(lidar=view))
 
 
-def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dict[str, np.ndarray]:
+def drive(scenarios: list, trials: int, seed: int, driver: str, car=None, policy=None) -> dict[str, np.ndarray]:
     """Drive ``trials`` trials of each scenario (one FastWorld per scenario, seed ``seed + k``
     for the k-th) by ``driver``: "teacher" (its own labels), "straight" (1 m/s) or "full"
-    (full throttle), both references straight along the start heading. ``car``: default the
-    shipped car scanning with the student's lidar view (:func:`student_car`).
+    (full throttle), both references straight along the start heading, or "policy" (``policy``,
+    a NumpyPolicy, on its stacked scans: a student beside its teacher on the same trials).
+    ``car``: default the shipped car scanning with the student's lidar view (:func:`student_car`).
 
     :return: per trial (scenarios x trials, flattened): success, collided, frozen (no contact
         but short of the route at the end), from_rest (the ego started standing), drive_off (s
@@ -564,14 +565,20 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
     from racecav.sim.fast_world import FastWorld
     from racecav.training.teacher import tracking_steer
 
+    if (driver == "policy") != (policy is not None):
+        raise ValueError("drive: a policy goes with the policy driver, and only with it")
     car = car or student_car()
     keys = ("success", "collided", "frozen", "from_rest", "drive_off", "done_at")
     out: dict[str, list] = {k: [] for k in keys}
     for k, sc in enumerate(scenarios):
         fw = FastWorld(n_envs=trials, scenarios=[sc], car=car, seed=seed + k)
-        fw.observe[:] = False  # nothing here reads a scan
-        fw.reset()
+        if policy is None:
+            fw.observe[:] = False  # nothing here reads a scan
+        obs = fw.reset()
         teacher = PredictiveTeacher(fw) if driver == "teacher" else None
+        if policy is not None:  # its scans newest first, obs_stride apart, as in training
+            n_stack, stride = policy.obs_stack, policy.obs_stride
+            hist = np.repeat(np.asarray(obs, np.float32)[:, None], (n_stack - 1) * stride + 1, axis=1)
         thr = 1.0 if driver == "full" else float(throttle_for_speed(1.0, car, fw.agent_speed_scale))
         hit = np.zeros(trials, bool)
         live = np.ones(trials, bool)
@@ -581,10 +588,16 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None) -> dic
         while live.any():
             if teacher is not None:
                 a = teacher.labels().astype(np.float64)
+            elif policy is not None:
+                a = policy(hist[:, ::stride][:, :n_stack].reshape(trials, -1)).astype(np.float64)
             else:
                 a = np.stack([np.full(trials, thr), tracking_steer(fw)], 1)
             a[~live] = 0.0
-            fw.step(a, brake=brake_from_action(a[:, 0], BRAKE_BELOW) & live, observe=False)
+            bb = policy.brake_below if policy is not None else BRAKE_BELOW
+            o, *_ = fw.step(a, brake=brake_from_action(a[:, 0], bb) & live, observe=policy is not None)
+            if policy is not None:
+                hist[:, 1:] = hist[:, :-1]
+                hist[:, 0] = o
             hit |= fw.collided & live
             moving = live & np.isnan(off) & (fw.v[:, 0] > 0.2)
             off[moving] = fw.time[moving]
@@ -605,8 +618,9 @@ DRIVERS = {"teacher": "predictive teacher", "straight": "straight 1 m/s", "full"
 
 
 def probe(suite: str, splits: list[str], trials: int, seed: int, families: list[str] | None = None,
-          progress: bool = True) -> dict:
-    """{split: {family: {driver: measures}}} of :func:`drive` on the files of a suite's splits."""
+          progress: bool = True, policy=None) -> dict:
+    """{split: {family: {driver: measures}}} of :func:`drive` on the files of a suite's splits
+    (with ``policy``, a NumpyPolicy: its driver "policy" too, on the same trials)."""
     from tqdm import tqdm
 
     from racecav.common.scenario import load_scenario, open_suite
@@ -623,14 +637,17 @@ def probe(suite: str, splits: list[str], trials: int, seed: int, families: list[
                 by_fam.setdefault(fam, []).append(f)
         for fam, files in by_fam.items():
             jobs.append((split, fam, files))
-    bar = tqdm(total=sum(len(j[2]) for j in jobs) * len(DRIVERS), desc="teacher probe", unit="file",
+    drivers = [*DRIVERS, *(["policy"] if policy is not None else [])]
+    car = student_car(policy.metadata.get("lidar", "paper")) if policy is not None else None
+    bar = tqdm(total=sum(len(j[2]) for j in jobs) * len(drivers), desc="teacher probe", unit="file",
                disable=not progress)
     for split, fam, files in jobs:
         scs = [load_scenario(f) for f in files]
         # the same seeds for every driver: the same trials
         base = seed + 1009 * (sorted(s.manifest["splits"]).index(split) + 1)
-        for d in DRIVERS:
-            res.setdefault(split, {}).setdefault(fam, {})[d] = drive(scs, trials, base, d)
+        for d in drivers:
+            res.setdefault(split, {}).setdefault(fam, {})[d] = drive(scs, trials, base, d, car,
+                                                                     policy if d == "policy" else None)
             bar.update(len(files))
     bar.close()
     return res
@@ -640,8 +657,8 @@ def _pct(x: np.ndarray) -> str:
     return f"{100 * x.mean():.0f}" if len(x) else "-"
 
 
-def report(res: dict, command: str, controls: set[str] = frozenset()) -> str:
-    """The markdown of docs/teacher.md."""
+def report(res: dict, command: str, controls: set[str] = frozenset(), policy_name: str = "") -> str:
+    """The markdown of docs/teacher.md (with a policy's columns when ``res`` has its driver)."""
     lines = ["# The predictive teacher, driven by its own labels", "",
              "Generated by `" + command + "` (training/predictive_teacher.py). Fast world, the student's "
              f"lidar view ({VIEW}: the teacher answers the cars its scans return from), selection seeds "
@@ -650,9 +667,14 @@ def report(res: dict, command: str, controls: set[str] = frozenset()) -> str:
              "short of the route when the trial's time ran out; drive-off: time until the ego first exceeds "
              "0.2 m/s, over the trials that start at rest. The references drive straight along their start "
              "heading at 1 m/s or at full throttle.", ""]
+    student = any("policy" in fam for fams in res.values() for fam in fams.values())
+    if student:
+        lines += [f"The policy: {policy_name} (its own view and stack, driven by its mean action).", ""]
+    pcols = " policy success % | policy collisions % | policy frozen % |" if student else ""
     lines += ["## Per split (mean over families)", "",
-              "| split | trials | teacher success % | collisions % | frozen % | straight 1 m/s % | full throttle % | drive-off from rest (median / max s, trials) |",
-              "|---|---:|---:|---:|---:|---:|---:|---|"]
+              "| split | trials | teacher success % | collisions % | frozen % |" + pcols
+              + " straight 1 m/s % | full throttle % | drive-off from rest (median / max s, trials) |",
+              "|---|---:|---:|---:|---:|" + ("---:|---:|---:|" if student else "") + "---:|---:|---|"]
     for split, fams in res.items():
         def fam_mean(d, key):
             return f"{100 * np.mean([fams[f][d][key].mean() for f in fams]):.0f}"
@@ -660,16 +682,25 @@ def report(res: dict, command: str, controls: set[str] = frozenset()) -> str:
         rest = np.concatenate([fams[f]["teacher"]["drive_off"][fams[f]["teacher"]["from_rest"]] for f in fams])
         off = (f"{np.nanmedian(rest):.1f} / {np.nanmax(rest):.1f} ({len(rest)}, never: {int(np.isnan(rest).sum())})"
                if len(rest) and not np.isnan(rest).all() else ("never" if len(rest) else "-"))
+        pol = (f" {fam_mean('policy', 'success')} | {fam_mean('policy', 'collided')} | {fam_mean('policy', 'frozen')} |"
+               if student else "")
         lines.append(f"| {split} | {n} | {fam_mean('teacher', 'success')} | {fam_mean('teacher', 'collided')} | "
-                     f"{fam_mean('teacher', 'frozen')} | {fam_mean('straight', 'success')} | {fam_mean('full', 'success')} | {off} |")
+                     f"{fam_mean('teacher', 'frozen')} |{pol} {fam_mean('straight', 'success')} | "
+                     f"{fam_mean('full', 'success')} | {off} |")
     for split, fams in res.items():
         lines += ["", f"## {split}", "",
-                  "| family | trials | teacher success % | collisions % | frozen % | straight 1 m/s % (coll.) | full throttle % (coll.) |",
-                  "|---|---:|---:|---:|---:|---:|---:|"]
+                  "| family | trials | teacher success % | collisions % | frozen % |"
+                  + (" policy success % (coll. / frozen) |" if student else "")
+                  + " straight 1 m/s % (coll.) | full throttle % (coll.) |",
+                  "|---|---:|---:|---:|---:|" + ("---:|" if student else "") + "---:|---:|"]
         for fam in sorted(fams):
             t, a, b = (fams[fam][d] for d in DRIVERS)
+            pol = ""
+            if student:
+                q = fams[fam]["policy"]
+                pol = f" {_pct(q['success'])} ({_pct(q['collided'])} / {_pct(q['frozen'])}) |"
             lines.append(f"| {fam} | {len(t['success'])} | {_pct(t['success'])} | {_pct(t['collided'])} | "
-                         f"{_pct(t['frozen'])} | {_pct(a['success'])} ({_pct(a['collided'])}) | "
+                         f"{_pct(t['frozen'])} |{pol} {_pct(a['success'])} ({_pct(a['collided'])}) | "
                          f"{_pct(b['success'])} ({_pct(b['collided'])}) |")
     return "\n".join(lines) + "\n"
 
@@ -683,6 +714,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=2, help="trials per file")
     p.add_argument("--seed", type=int, default=SELECTION_SEED)
     p.add_argument("--families", default="", help="only these families (comma-separated; default all)")
+    p.add_argument("--policy", help="also drive this policy (a shipped name or .npz, or a run's checkpoint .zip) "
+                                    "on the same trials: a student beside its teacher")
     p.add_argument("--out", help="write the markdown here (else print it)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -692,12 +725,17 @@ def main(argv: list[str] | None = None) -> int:
     splits = [x.strip() for x in args.splits.split(",") if x.strip()]
     fams = [x.strip() for x in args.families.split(",") if x.strip()] or None
     try:
-        res = probe(args.suite, splits, args.trials, args.seed, fams, progress=not args.no_progress)
-    except ValueError as e:
+        policy = None
+        if args.policy:
+            from racecav.training.policy_io import named_policy
+
+            policy = named_policy(args.policy)
+        res = probe(args.suite, splits, args.trials, args.seed, fams, progress=not args.no_progress, policy=policy)
+    except (ValueError, FileNotFoundError) as e:
         print(str(e), file=sys.stderr)
         return 2
     cmd = "python -m racecav.training.predictive_teacher " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = report(res, cmd.strip())
+    text = report(res, cmd.strip(), policy_name=args.policy or "")
     if args.out:
         Path(args.out).write_text(text)
     print(text)
