@@ -205,6 +205,18 @@ def export_policy(sb3_model, path: str | Path, metadata: dict[str, Any] | None =
     return path
 
 
+def push_scans(hist: np.ndarray, obs: np.ndarray) -> None:
+    """A batch's scan history (B, L, R), newest first: shifted by one, ``obs`` (B, R) in front."""
+    hist[:, 1:] = hist[:, :-1]
+    hist[:, 0] = obs
+
+
+def stacked_scans(hist: np.ndarray, n: int, stride: int) -> np.ndarray:
+    """(B, n * R) from a batch's history (B, L, R): each car's ``n`` scans ``stride`` apart, newest
+    first, as :class:`ScanStack` gives one car's (a copy)."""
+    return hist[:, ::stride][:, :n].reshape(hist.shape[0], -1).copy()
+
+
 class ScanStack:
     """``n`` observations of one car, ``stride`` scans apart, newest first, as the training env
     stacks them: after a reset (or a gap: a lost scan, a new episode) the history is filled with

@@ -562,6 +562,7 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None, policy
         until it first exceeded 0.2 m/s; nan if never), done_at (s until it first had the route's
         progress without contact; nan if never).
     """
+    from racecav.common.policy import push_scans, stacked_scans
     from racecav.sim.fast_world import FastWorld
     from racecav.training.teacher import tracking_steer
 
@@ -589,15 +590,14 @@ def drive(scenarios: list, trials: int, seed: int, driver: str, car=None, policy
             if teacher is not None:
                 a = teacher.labels().astype(np.float64)
             elif policy is not None:
-                a = policy(hist[:, ::stride][:, :n_stack].reshape(trials, -1)).astype(np.float64)
+                a = policy(stacked_scans(hist, n_stack, stride)).astype(np.float64)
             else:
                 a = np.stack([np.full(trials, thr), tracking_steer(fw)], 1)
             a[~live] = 0.0
             bb = policy.brake_below if policy is not None else BRAKE_BELOW
             o, *_ = fw.step(a, brake=brake_from_action(a[:, 0], bb) & live, observe=policy is not None)
             if policy is not None:
-                hist[:, 1:] = hist[:, :-1]
-                hist[:, 0] = o
+                push_scans(hist, o)
             hit |= fw.collided & live
             moving = live & np.isnan(off) & (fw.v[:, 0] > 0.2)
             off[moving] = fw.time[moving]

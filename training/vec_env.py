@@ -23,6 +23,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from racecav.common.config import EnvConfig
+from racecav.common.policy import push_scans, stacked_scans
 from racecav.common.vehicle import brake_from_action
 from racecav.training.env import env_settings, make_worlds, reward, scenario_envs
 from racecav.training.flow_reward import flow_reward, flow_weights
@@ -165,7 +166,7 @@ class FastVecEnv(VecEnv):
         if (n_stack - 1) * stride + 1 > self._stack.shape[1]:
             raise ValueError(f"a stack of {n_stack} scans {stride} apart needs more history than this env's "
                              f"{self.n_stack} scans {self.stride} apart")
-        return self._stack[:, ::stride][:, :n_stack].reshape(self.num_envs, -1).copy()
+        return stacked_scans(self._stack, n_stack, stride)
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, 2)
@@ -198,8 +199,7 @@ class FastVecEnv(VecEnv):
         if flow is not None:
             rewards = rewards + np.concatenate(flow)
         self.a_prev[:] = a_delta
-        self._stack[:, 1:] = self._stack[:, :-1]
-        self._stack[:, 0] = obs
+        push_scans(self._stack, obs)
         obs = self._stacked()
         dones = collided | truncated
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
